@@ -1,0 +1,332 @@
+"""Fused EKF and UKF steps as CasADi Functions (kernels), derived from a Model.
+
+EKF (additive noise): x- = f_d(x), P- = F P F^T + Q dt; update with the Joseph form
+P+ = (I - K H) P- (I - K H)^T + K R K^T. Q is a continuous-time power spectral density, so the
+discrete process noise is Q dt.
+
+UKF (paper 004, eqs (1)-(3), Julier & Uhlmann): 2n+1 sigma points x, x +/- columns of
+chol((n + kappa) P), weights W_0 = kappa/(n + kappa), W_i = 1/(2(n + kappa)); the update redraws
+sigma points from the predicted mean and covariance. Angle components of a measurement are
+averaged and differenced on the circle (wrapped to (-pi, pi]).
+
+Every update takes an availability ``mask`` (1 = use, 0 = ignore): a masked component's
+innovation is zero, its row of H and its sigma-point deviations are zero and its noise variance
+is replaced by 1, so it contributes exactly nothing; an all-masked update returns x and P unchanged.
+A failed Cholesky factorisation returns status SYMKF_ERR_NOT_PD and the inputs x, P unchanged.
+"""
+from __future__ import annotations
+
+from typing import Callable
+
+import casadi as ca
+
+from ..models.base import Model
+from . import linalg
+from .discretize import FUNCTION_OPTIONS, continuous_dynamics, discrete_dynamics, measurement_function
+from .spec import STATUS_DOMAIN, STATUS_NOT_PD, Arg, CodegenConfig, Kernel
+
+
+class Symbols:
+    """The canonical kernel arguments of a model: one SX symbol and one Arg description each."""
+
+    def __init__(self, model: Model):
+        n, units = model.nx, [v.unit for v in model.states]
+        state_units = ", ".join(units)
+        self.model = model
+        self.sym: dict[str, ca.SX] = {
+            "t": model.t, "dt": ca.SX.sym("dt"), "x": ca.SX.sym("x", n), "P": ca.SX.sym("P", n, n),
+            "u": ca.SX.sym("u", len(model.inputs)), "p": ca.SX.sym("p", len(model.params)),
+            "Q": ca.SX.sym("Q", n, n), "kappa": ca.SX.sym("kappa")}
+        self.arg: dict[str, Arg] = {
+            "t": Arg("t", (1, 1), "s", "time at the start of the step"),
+            "dt": Arg("dt", (1, 1), "s", "step length"),
+            "x": Arg("x", (n, 1), state_units, "state estimate " + str(model.state_names())),
+            "P": Arg("P", (n, n), "state units squared", "state error covariance (symmetric)"),
+            "u": Arg("u", (len(model.inputs), 1), ", ".join(v.unit for v in model.inputs) or "-",
+                     "known inputs " + str([v.name for v in model.inputs])),
+            "p": Arg("p", (len(model.params), 1), ", ".join(v.unit for v in model.params) or "-",
+                     "runtime parameters " + str([v.name for v in model.params])),
+            "Q": Arg("Q", (n, n), "state units squared per second",
+                     "process noise power spectral density (discrete: Q dt)"),
+            "kappa": Arg("kappa", (1, 1), "-", "UKF scaling parameter (n + kappa > 0)"),
+            "status": Arg("status", (1, 1), "-", "0 on success, else a SYMKF_ERR_* code"),
+        }
+
+    def measurement(self, name: str) -> tuple[dict[str, ca.SX], dict[str, Arg]]:
+        meas = self.model.measurements[name]
+        m, units = meas.size, ", ".join(v.unit for v in meas.outputs)
+        sym = {"q": ca.SX.sym("q", meas.q.shape[0]), "z": ca.SX.sym("z", m),
+               "mask": ca.SX.sym("mask", m), "R": ca.SX.sym("R", m, m)}
+        args = {
+            "q": Arg("q", (meas.q.shape[0], 1), ", ".join(v.unit for v in meas.params) or "-",
+                     f"parameters of measurement '{name}' " + str([v.name for v in meas.params])),
+            "z": Arg("z", (m, 1), units, f"measurement '{name}' " + str([v.name for v in meas.outputs])),
+            "mask": Arg("mask", (m, 1), "-", "availability per component: 1 use, 0 ignore"),
+            "R": Arg("R", (m, m), "measurement units squared", "measurement noise covariance"),
+            "y": Arg("y", (m, 1), units, "innovation z - h(x) (angles wrapped, masked entries 0)"),
+            "S": Arg("S", (m, m), "measurement units squared", "innovation covariance"),
+        }
+        return sym, args
+
+
+class ModelFunctions:
+    """The model's own functions, each generated once in C and *called* by the filter kernels.
+
+    f_d, its Jacobian, h and its Jacobian are CasADi SX functions marked ``never_inline``: a UKF
+    calls f_d 2n+1 times without 2n+1 copies of its code, which keeps the C small and fast to
+    compile.
+    """
+
+    def __init__(self, model: Model, config: CodegenConfig):
+        prefix = model.name
+        options = dict(FUNCTION_OPTIONS, never_inline=True)
+        self.zero_w = ca.DM.zeros(len(model.noises))
+        fd = discrete_dynamics(model, config.rk4_substeps)
+        t, dt, x, u, p, w = fd.sx_in()
+        x_next = fd(t, dt, x, u, p, self.zero_w)
+        args, names = [t, dt, x, u, p], ["t", "dt", "x", "u", "p"]
+        self.fd = ca.Function(f"{prefix}_fd", args, [x_next], names, ["x"], options)
+        F = ca.densify(ca.jacobian(x_next, x))
+        self.jac_fd = ca.Function(f"{prefix}_jac_fd", args, [F], names, ["F"], options)
+        # f_d and F together share the primal evaluation (the EKF prediction needs both)
+        self.fd_and_jac = ca.Function(f"{prefix}_fd_and_jac", args, [x_next, F], names, ["x", "F"], options)
+        self.h, self.jac_h = {}, {}
+        for name in model.measurements:
+            h = measurement_function(model, name)
+            ht, hx, hu, hp, hq = h.sx_in()
+            z = h(ht, hx, hu, hp, hq)
+            hargs, hnames = [ht, hx, hu, hp, hq], ["t", "x", "u", "p", "q"]
+            self.h[name] = ca.Function(f"{prefix}_h_{name}", hargs, [z], hnames, ["z"], options)
+            self.jac_h[name] = ca.Function(f"{prefix}_jac_h_{name}", hargs, [ca.densify(ca.jacobian(z, hx))],
+                                           hnames, ["H"], options)
+
+
+def _kernel(name: str, doc: str, symbols: Symbols, extra_sym: dict, extra_arg: dict,
+            inputs: list[str], outputs: list[tuple[str, ca.SX]], carried=(), per_step=()) -> Kernel:
+    sym = {**symbols.sym, **extra_sym}
+    args = {**symbols.arg, **extra_arg}
+    out_names = [o for o, _ in outputs]
+    function = ca.Function(f"{symbols.model.name}_k_{name}", [sym[i] for i in inputs],
+                           [ca.densify(expr) for _, expr in outputs], inputs, out_names, FUNCTION_OPTIONS)
+    return Kernel(name, function, doc, tuple(args[i] for i in inputs),
+                  tuple(args[o] if o in args else Arg(o, tuple(e.shape)) for o, e in outputs),
+                  tuple(carried), tuple(per_step))
+
+
+# ---------------------------------------------------------------------- model functions
+def model_kernels(model: Model, symbols: Symbols, fns: ModelFunctions) -> list[Kernel]:
+    """f, f_d, F = df_d/dx, and h, H = dh/dx for every measurement."""
+    s = symbols.sym
+    f = continuous_dynamics(model)
+    step_args = (s["t"], s["dt"], s["x"], s["u"], s["p"])
+    kernels = [
+        _kernel("f", "Continuous dynamics dx/dt = f(t, x, u, p).", symbols, {}, {},
+                ["t", "x", "u", "p"], [("xdot", f(s["t"], s["x"], s["u"], s["p"], fns.zero_w)), ("status", ca.SX(0))]),
+        _kernel("fd", "Discrete dynamics: RK4 from t to t + dt.", symbols, {}, {},
+                ["t", "dt", "x", "u", "p"], [("x", fns.fd(*step_args)), ("status", ca.SX(0))]),
+        _kernel("jac_fd", "State-transition Jacobian F = d f_d / d x (derived by CasADi).", symbols, {}, {},
+                ["t", "dt", "x", "u", "p"], [("F", fns.jac_fd(*step_args)), ("status", ca.SX(0))]),
+    ]
+    for name in model.measurements:
+        msym, marg = symbols.measurement(name)
+        meas_args = (s["t"], s["x"], s["u"], s["p"], msym["q"])
+        kernels += [
+            _kernel(f"h_{name}", f"Measurement '{name}': z = h(t, x, u, p, q).", symbols, msym, marg,
+                    ["t", "x", "u", "p", "q"], [("z", fns.h[name](*meas_args)), ("status", ca.SX(0))]),
+            _kernel(f"jac_h_{name}", f"Measurement Jacobian H = dh/dx of '{name}' (derived by CasADi).",
+                    symbols, msym, marg, ["t", "x", "u", "p", "q"],
+                    [("H", fns.jac_h[name](*meas_args)), ("status", ca.SX(0))]),
+        ]
+    return kernels
+
+
+# ---------------------------------------------------------------------- shared update algebra
+def _masked_noise(R: ca.SX, mask: ca.SX) -> ca.SX:
+    """R with masked rows/columns replaced by the identity's (keeps S positive definite)."""
+    m = R.shape[0]
+    return ca.vertcat(*[ca.horzcat(*[
+        R[i, j] * mask[i] * mask[j] + (1 - mask[i]) * (1.0 if i == j else 0.0) for j in range(m)])
+        for i in range(m)])
+
+
+def _innovation(z: ca.SX, z_pred: ca.SX, mask: ca.SX, wrap: tuple[bool, ...]) -> ca.SX:
+    """z - z_pred, angles wrapped; masked components are exactly 0 even if z is NaN there."""
+    rows = []
+    for i, is_angle in enumerate(wrap):
+        d = z[i] - z_pred[i]
+        rows.append(linalg.select(mask[i] > 0.5, linalg.wrap_angle(d) if is_angle else d, 0))
+    return ca.vertcat(*rows)
+
+
+def _keep_on_failure(ok: ca.SX, new: list[ca.SX], old: list[ca.SX], failure_code: int) -> list[ca.SX]:
+    kept = [linalg.select(ok, a, b) for a, b in zip(new, old)]
+    return kept + [linalg.select(ok, 0, failure_code)]
+
+
+# ---------------------------------------------------------------------- EKF
+def ekf_predict_expr(symbols: Symbols, fns: ModelFunctions, x, P, t, dt):
+    s = symbols.sym
+    x_next, F = fns.fd_and_jac(t, dt, x, s["u"], s["p"])
+    return x_next, linalg.symmetrize(F @ P @ F.T + s["Q"] * dt)
+
+
+def ekf_update_expr(symbols: Symbols, fns: ModelFunctions, name: str, msym: dict, wrap, x, P, t):
+    s = symbols.sym
+    n = symbols.model.nx
+    z_pred = fns.h[name](t, x, s["u"], s["p"], msym["q"])
+    mask = msym["mask"]
+    H = ca.diag(mask) @ fns.jac_h[name](t, x, s["u"], s["p"], msym["q"])
+    R = _masked_noise(msym["R"], mask)
+    y = _innovation(msym["z"], z_pred, mask, wrap)
+    S = linalg.symmetrize(H @ P @ H.T + R)
+    L, ok = linalg.cholesky(S)
+    K = linalg.cholesky_solve(L, H @ P).T           # K = P H^T S^-1
+    I_KH = ca.SX.eye(n) - K @ H
+    x_new = x + K @ y
+    P_new = linalg.symmetrize(I_KH @ P @ I_KH.T + K @ R @ K.T)
+    return x_new, P_new, y, S, ok
+
+
+def ekf_kernels(model: Model, symbols: Symbols, fns: ModelFunctions) -> list[Kernel]:
+    s = symbols.sym
+    x_pred, P_pred = ekf_predict_expr(symbols, fns, s["x"], s["P"], s["t"], s["dt"])
+    kernels = [_kernel("ekf_predict", "EKF prediction from t to t + dt (P = F P F^T + Q dt).",
+                       symbols, {}, {}, ["t", "dt", "x", "P", "u", "p", "Q"],
+                       [("x", x_pred), ("P", P_pred), ("status", ca.SX(0))])]
+    for name, meas in model.measurements.items():
+        msym, marg = symbols.measurement(name)
+        upd = ekf_update_expr(symbols, fns, name, msym, meas.wrap, s["x"], s["P"], s["t"])
+        kernels.append(_kernel(
+            f"ekf_update_{name}", f"EKF update with measurement '{name}' at time t (Joseph form, masked).",
+            symbols, msym, marg, ["t", "x", "P", "u", "p", "q", "z", "mask", "R"],
+            _update_outputs(upd, s["x"], s["P"])))
+        kernels.append(compose_step(f"ekf_step_{name}", kernels[0], kernels[-1]))
+    return kernels
+
+
+def compose_step(name: str, predict: Kernel, update: Kernel) -> Kernel:
+    """predict(t, dt) then update at t + dt, as one kernel that calls the two (no code copied).
+
+    Inputs are the union of both kernels' inputs (predict's order first); outputs are the
+    update's. If either part fails, x and P come back unchanged with the first failure's code.
+    """
+    inputs = list(predict.inputs) + [a for a in update.inputs if a.name not in {b.name for b in predict.inputs}]
+    sym = {a.name: ca.MX.sym(a.name, *a.shape) for a in inputs}
+    pred = predict.function.call({a.name: sym[a.name] for a in predict.inputs})
+    upd_args = {a.name: sym[a.name] for a in update.inputs}
+    upd_args.update(t=sym["t"] + sym["dt"], x=pred["x"], P=pred["P"])
+    upd = update.function.call(upd_args)
+    failed_early = pred["status"] != 0
+    outputs = []
+    for a in update.outputs:
+        value = upd[a.name]
+        if a.name in ("x", "P"):
+            value = ca.if_else(failed_early, sym[a.name], value)
+        elif a.name == "status":
+            value = ca.if_else(failed_early, pred["status"], value)
+        outputs.append(value)
+    model = predict.function.name().split("_k_")[0]
+    function = ca.Function(f"{model}_k_{name}", [sym[a.name] for a in inputs], outputs,
+                           [a.name for a in inputs], [a.name for a in update.outputs],
+                           {"allow_duplicate_io_names": True})
+    doc = f"{predict.doc.split(' (')[0]} then {update.doc[0].lower()}{update.doc[1:]} (one call)."
+    return Kernel(name, function, doc, tuple(inputs), update.outputs, carried=("x", "P"),
+                  per_step=tuple(a.name for a in inputs if a.name in ("t", "dt", "u", "q", "z", "mask")))
+
+
+def _update_outputs(update, x_old, P_old):
+    x_new, P_new, y, S, ok = update
+    x_out, P_out, status = _keep_on_failure(ok, [x_new, P_new], [x_old, P_old], STATUS_NOT_PD)
+    return [("x", x_out), ("P", P_out), ("y", y), ("S", S), ("status", status)]
+
+
+# ---------------------------------------------------------------------- UKF
+def sigma_points(x: ca.SX, P: ca.SX, kappa: ca.SX):
+    """Eq (1)-(2) of paper 004: points (columns), weights, and a 0/1 success flag."""
+    n = x.shape[0]
+    scale = n + kappa
+    L, ok = linalg.cholesky(scale * P)
+    points = [x] + [x + L[:, i] for i in range(n)] + [x - L[:, i] for i in range(n)]
+    weights = [kappa / scale] + [0.5 / scale] * (2 * n)
+    return points, weights, ok * (scale > 0)
+
+
+def _weighted_mean(points: list[ca.SX], weights: list, wrap: tuple[bool, ...] | None = None) -> ca.SX:
+    """Weighted mean; wrapped components are averaged as deviations from the first point."""
+    if not wrap or not any(wrap):
+        return sum((w * pt for w, pt in zip(weights, points)), ca.SX.zeros(points[0].shape))
+    ref = points[0]
+    deviation = sum((w * _angle_difference(pt, ref, wrap) for w, pt in zip(weights, points)),
+                    ca.SX.zeros(ref.shape))
+    return ref + deviation
+
+
+def _angle_difference(a: ca.SX, b: ca.SX, wrap: tuple[bool, ...]) -> ca.SX:
+    return ca.vertcat(*[linalg.wrap_angle(a[i] - b[i]) if wrap[i] else a[i] - b[i] for i in range(a.shape[0])])
+
+
+def ukf_predict_expr(symbols: Symbols, fns: ModelFunctions, x, P, t, dt):
+    s = symbols.sym
+    points, weights, ok = sigma_points(x, P, s["kappa"])
+    propagated = [fns.fd(t, dt, pt, s["u"], s["p"]) for pt in points]
+    x_pred = _weighted_mean(propagated, weights)
+    P_pred = sum((w * (pt - x_pred) @ (pt - x_pred).T for w, pt in zip(weights, propagated)),
+                 ca.SX.zeros(P.shape)) + s["Q"] * dt
+    return x_pred, linalg.symmetrize(P_pred), ok
+
+
+def ukf_update_expr(symbols: Symbols, fns: ModelFunctions, name: str, msym: dict, wrap, x, P, t):
+    s = symbols.sym
+    mask = msym["mask"]
+    points, weights, ok = sigma_points(x, P, s["kappa"])
+    predicted = [fns.h[name](t, pt, s["u"], s["p"], msym["q"]) for pt in points]
+    z_pred = _weighted_mean(predicted, weights, wrap)
+    dz = [mask * _angle_difference(zi, z_pred, wrap) for zi in predicted]
+    dx = [pt - x for pt in points]
+    R = _masked_noise(msym["R"], mask)
+    S = linalg.symmetrize(sum((w * d @ d.T for w, d in zip(weights, dz)), ca.SX.zeros(R.shape)) + R)
+    Pxz = sum((w * a @ b.T for w, a, b in zip(weights, dx, dz)), ca.SX.zeros(x.shape[0], R.shape[0]))
+    L, ok_s = linalg.cholesky(S)
+    K = linalg.cholesky_solve(L, Pxz.T).T           # K = Pxz S^-1
+    y = _innovation(msym["z"], z_pred, mask, wrap)
+    x_new = x + K @ y
+    P_new = linalg.symmetrize(P - K @ S @ K.T)
+    return x_new, P_new, y, S, ok * ok_s
+
+
+def ukf_kernels(model: Model, symbols: Symbols, fns: ModelFunctions) -> list[Kernel]:
+    s = symbols.sym
+    x_pred, P_pred, ok_pred = ukf_predict_expr(symbols, fns, s["x"], s["P"], s["t"], s["dt"])
+    x_out, P_out, status = _keep_on_failure(ok_pred, [x_pred, P_pred], [s["x"], s["P"]], STATUS_NOT_PD)
+    status = linalg.select(s["kappa"] + model.nx > 0, status, STATUS_DOMAIN)
+    kernels = [_kernel("ukf_predict", "UKF prediction from t to t + dt (2n+1 sigma points, eq (1)-(3)).",
+                       symbols, {}, {}, ["t", "dt", "x", "P", "u", "p", "Q", "kappa"],
+                       [("x", x_out), ("P", P_out), ("status", status)])]
+    for name, meas in model.measurements.items():
+        msym, marg = symbols.measurement(name)
+        upd = ukf_update_expr(symbols, fns, name, msym, meas.wrap, s["x"], s["P"], s["t"])
+        kernels.append(_kernel(
+            f"ukf_update_{name}", f"UKF update with measurement '{name}' at time t (sigma points redrawn, masked).",
+            symbols, msym, marg, ["t", "x", "P", "u", "p", "q", "z", "mask", "R", "kappa"],
+            _update_outputs(upd, s["x"], s["P"])))
+        kernels.append(compose_step(f"ukf_step_{name}", kernels[0], kernels[-1]))
+    return kernels
+
+
+FamilyBuilder = Callable[[Model, Symbols, ModelFunctions], list[Kernel]]
+
+#: Filter families a model can ask for by name in ``Model.filters``. Other families (quaternion
+#: filters, gradient-descent filters, ...) live in ``codegen/families/<name>.py`` and call
+#: :func:`register_family` when imported; ``symkf.codegen.families`` imports them all.
+FAMILIES: dict[str, FamilyBuilder] = {
+    "ekf": ekf_kernels,
+    "ukf": ukf_kernels,
+}
+
+
+def register_family(name: str, builder: FamilyBuilder) -> FamilyBuilder:
+    """Make a filter family available to models by name."""
+    if name in FAMILIES and FAMILIES[name] is not builder:
+        raise ValueError(f"filter family '{name}' is registered twice")
+    FAMILIES[name] = builder
+    return builder

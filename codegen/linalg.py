@@ -1,0 +1,67 @@
+"""Small dense linear algebra written in CasADi SX, so it unrolls into branch-free C.
+
+Cholesky factorisation reports failure as data (a flag) instead of producing NaN: the square root
+is taken of max(pivot, tiny), and the flag says whether every pivot was positive and finite.
+"""
+from __future__ import annotations
+
+import casadi as ca
+
+TINY = 1e-300
+
+
+def symmetrize(A: ca.SX) -> ca.SX:
+    return 0.5 * (A + A.T)
+
+
+def cholesky(A: ca.SX) -> tuple[ca.SX, ca.SX]:
+    """Lower-triangular L with L L^T = A, and a 0/1 flag that A was positive definite."""
+    n = A.shape[0]
+    L = ca.SX.zeros(n, n)
+    ok = ca.SX(1)
+    for j in range(n):
+        pivot = A[j, j] - sum((L[j, k] ** 2 for k in range(j)), ca.SX(0))
+        ok = ok * (pivot > 0) * (pivot < ca.inf)
+        L[j, j] = ca.sqrt(ca.fmax(pivot, TINY))
+        for i in range(j + 1, n):
+            L[i, j] = (A[i, j] - sum((L[i, k] * L[j, k] for k in range(j)), ca.SX(0))) / L[j, j]
+    return L, ok
+
+
+def solve_lower(L: ca.SX, B: ca.SX) -> ca.SX:
+    """Solve L X = B by forward substitution (L lower triangular)."""
+    n = L.shape[0]
+    rows = []
+    for i in range(n):
+        acc = B[i, :]
+        for k in range(i):
+            acc = acc - L[i, k] * rows[k]
+        rows.append(acc / L[i, i])
+    return ca.vertcat(*rows)
+
+
+def solve_upper_t(L: ca.SX, B: ca.SX) -> ca.SX:
+    """Solve L^T X = B by back substitution (L lower triangular)."""
+    n = L.shape[0]
+    rows = [None] * n
+    for i in reversed(range(n)):
+        acc = B[i, :]
+        for k in range(i + 1, n):
+            acc = acc - L[k, i] * rows[k]
+        rows[i] = acc / L[i, i]
+    return ca.vertcat(*rows)
+
+
+def cholesky_solve(L: ca.SX, B: ca.SX) -> ca.SX:
+    """Solve A X = B given A's Cholesky factor L."""
+    return solve_upper_t(L, solve_lower(L, B))
+
+
+def wrap_angle(a: ca.SX) -> ca.SX:
+    """Wrap to (-pi, pi]."""
+    return ca.atan2(ca.sin(a), ca.cos(a))
+
+
+def select(flag: ca.SX, if_true: ca.SX, if_false: ca.SX) -> ca.SX:
+    """Element-wise if_else that never lets NaN in the unselected branch leak through."""
+    return ca.if_else(flag, if_true, if_false)

@@ -1,0 +1,136 @@
+"""Typed descriptions of what codegen produces: kernels, their arguments, build settings.
+
+A *kernel* is one CasADi Function that becomes one C entry point. Its last output is always a
+scalar ``status`` (0 = success, otherwise one of :data:`STATUS_CODES`); the C wrapper turns it
+into the return code and leaves every output untouched on failure.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import casadi as ca
+
+#: Return codes shared by the generated C and the Python runtime.
+STATUS_CODES = {
+    0: ("SYMKF_OK", "success"),
+    1: ("SYMKF_ERR_EVAL", "the generated function reported an evaluation error"),
+    2: ("SYMKF_ERR_NOT_PD", "a covariance (P, or the innovation covariance S) is not positive definite"),
+    3: ("SYMKF_ERR_NONFINITE", "an input or result is NaN or infinite"),
+    4: ("SYMKF_ERR_DOMAIN", "an argument is outside the domain of the equations (e.g. |dp| >= 1 or n + kappa <= 0)"),
+    5: ("SYMKF_ERR_ARGS", "a bad argument (e.g. a negative step count)"),
+}
+STATUS_OK, STATUS_EVAL, STATUS_NOT_PD, STATUS_NONFINITE, STATUS_DOMAIN, STATUS_ARGS = range(6)
+
+
+@dataclass(frozen=True)
+class Arg:
+    """One argument of a kernel: its name, dense shape, unit and meaning."""
+
+    name: str
+    shape: tuple[int, int]
+    unit: str = "-"
+    description: str = ""
+
+    @property
+    def size(self) -> int:
+        return self.shape[0] * self.shape[1]
+
+    def as_dict(self) -> dict:
+        return {"name": self.name, "shape": list(self.shape), "unit": self.unit,
+                "description": self.description}
+
+
+@dataclass(frozen=True)
+class Kernel:
+    """A CasADi Function destined to become the C function ``<model>_<name>``.
+
+    Attributes:
+        name: C-safe name, unique within the model.
+        function: the CasADi Function; inputs/outputs in the order of ``inputs``/``outputs``.
+        doc: one paragraph for the header and manifest.
+        inputs, outputs: argument descriptions (outputs end with ``status``).
+        carried: names of outputs that feed back into the same-named inputs in a run loop
+            (e.g. ``("x", "P")``); empty for kernels that are not filter steps.
+        per_step: names of inputs that change every step of a run (e.g. ``t``, ``z``).
+    """
+
+    name: str
+    function: ca.Function
+    doc: str
+    inputs: tuple[Arg, ...]
+    outputs: tuple[Arg, ...]
+    carried: tuple[str, ...] = ()
+    per_step: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        f = self.function
+        if f.n_in() != len(self.inputs) or f.n_out() != len(self.outputs):
+            raise ValueError(f"kernel '{self.name}': {f.n_in()} inputs/{f.n_out()} outputs in the Function, "
+                             f"{len(self.inputs)}/{len(self.outputs)} described")
+        for i, arg in enumerate(self.inputs):
+            if tuple(f.size_in(i)) != arg.shape:
+                raise ValueError(f"kernel '{self.name}': input '{arg.name}' is {f.size_in(i)}, described {arg.shape}")
+        for i, arg in enumerate(self.outputs):
+            if tuple(f.size_out(i)) != arg.shape:
+                raise ValueError(f"kernel '{self.name}': output '{arg.name}' is {f.size_out(i)}, described {arg.shape}")
+        if self.outputs[-1].name != "status" or self.outputs[-1].shape != (1, 1):
+            raise ValueError(f"kernel '{self.name}': the last output must be the scalar 'status'")
+
+    @property
+    def runnable(self) -> bool:
+        """True if a C run loop is generated for it (it carries a filter state)."""
+        return bool(self.carried)
+
+    def input_index(self, name: str) -> int:
+        return [a.name for a in self.inputs].index(name)
+
+    def as_dict(self) -> dict:
+        f = self.function
+        return {"name": self.name, "doc": self.doc,
+                "inputs": [a.as_dict() for a in self.inputs],
+                "outputs": [a.as_dict() for a in self.outputs],
+                "carried": list(self.carried), "per_step": list(self.per_step),
+                "work": {"arg": f.sz_arg(), "res": f.sz_res(), "iw": f.sz_iw(), "w": f.sz_w()},
+                "instructions": f.n_instructions()}
+
+
+@dataclass(frozen=True)
+class CodegenConfig:
+    """Settings that change the generated code (all part of the build's content hash).
+
+    Attributes:
+        rk4_substeps: RK4 sub-steps per filter step in the discretised dynamics.
+        optimization: the C compiler's -O level for the Python-loaded library.
+        extra: per-family settings (e.g. a quaternion filter's iteration count).
+    """
+
+    rk4_substeps: int = 1
+    optimization: str = "-O3 -fno-math-errno"
+    extra: tuple[tuple[str, object], ...] = ()
+
+    def with_overrides(self, **changes) -> "CodegenConfig":
+        """A new config with the given fields changed; this one is left as it is."""
+        known = {k: v for k, v in changes.items() if k in self.__dataclass_fields__}
+        extra = dict(self.extra)
+        extra.update({k: v for k, v in changes.items() if k not in self.__dataclass_fields__})
+        return replace(self, **known, extra=tuple(sorted(extra.items())))
+
+    def get(self, key: str, default=None):
+        return dict(self.extra).get(key, default)
+
+
+@dataclass
+class Bundle:
+    """Everything generated for one model: the kernels plus what describes them."""
+
+    model_name: str
+    kernels: list[Kernel]
+    config: CodegenConfig
+    description: dict = field(default_factory=dict)
+
+    def kernel(self, name: str) -> Kernel:
+        for k in self.kernels:
+            if k.name == name:
+                return k
+        raise KeyError(f"model '{self.model_name}' has no kernel '{name}'; "
+                       f"it has {[k.name for k in self.kernels]}")

@@ -1,0 +1,215 @@
+"""The model-author API: named, unit-carrying symbols and the equations that use them.
+
+A model is one file in ``models/`` that builds a :class:`Model`: it declares states, known inputs,
+runtime parameters and process noises (each with a unit and a description), sets the continuous
+dynamics ``dx/dt = f(t, x, u, p, w)`` and adds measurement functions ``z = h(t, x, u, p, q)``
+(``q``: that measurement's own runtime parameters, e.g. a radar station's position). Everything is
+CasADi ``SX``; nothing here knows about C. Errors name the state, equation or shape at fault.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import casadi as ca
+import numpy as np
+
+
+class ModelError(ValueError):
+    """A model declaration is inconsistent; the message names the symbol or equation at fault."""
+
+
+@dataclass(frozen=True)
+class Variable:
+    """One named scalar of a model: a state, input, parameter, noise or measurement output."""
+
+    name: str
+    unit: str
+    description: str
+
+    def as_dict(self) -> dict:
+        return {"name": self.name, "unit": self.unit, "description": self.description}
+
+
+@dataclass
+class Measurement:
+    """A measurement function ``z = h(t, x, u, p, q)`` with its noise and angle handling.
+
+    Attributes:
+        outputs: one Variable per component of z.
+        h: the symbolic expression (column, len(outputs)).
+        params: runtime parameters of this measurement only (``q``), e.g. station coordinates.
+        sigma: default 1-sigma noise per component, in the component's unit.
+        wrap: per component, True where it is an angle whose innovation is wrapped to (-pi, pi].
+    """
+
+    name: str
+    outputs: list[Variable]
+    h: ca.SX
+    params: list[Variable]
+    q: ca.SX
+    sigma: np.ndarray
+    wrap: tuple[bool, ...]
+
+    @property
+    def size(self) -> int:
+        return len(self.outputs)
+
+
+@dataclass
+class Model:
+    """A vehicle and its sensors, written once as CasADi SX expressions.
+
+    Build one with ``Model(name, description, paper)``, declare symbols with :meth:`state`, :meth:`input`,
+    :meth:`param` and :meth:`noise`, then call :meth:`set_dynamics` and :meth:`add_measurement`.
+    """
+
+    name: str
+    description: str
+    paper: str = ""
+    t: ca.SX = field(default_factory=lambda: ca.SX.sym("t"))
+    states: list[Variable] = field(default_factory=list)
+    inputs: list[Variable] = field(default_factory=list)
+    params: list[Variable] = field(default_factory=list)
+    noises: list[Variable] = field(default_factory=list)
+    param_defaults: list[float] = field(default_factory=list)
+    measurements: dict[str, Measurement] = field(default_factory=dict)
+    f: ca.SX | None = None
+    #: Names of the filter families codegen should generate for this model ("ekf", "ukf", ...).
+    filters: tuple[str, ...] = ("ekf", "ukf")
+    #: Codegen settings the model author wants by default (e.g. {"rk4_substeps": 2}).
+    codegen_defaults: dict = field(default_factory=dict)
+    _symbols: dict[str, list[ca.SX]] = field(default_factory=lambda: {k: [] for k in "xupw"})
+    _pending_q: tuple | None = None
+
+    # ----------------------------------------------------------------- declarations
+    def _declare(self, kind: str, table: list[Variable], name: str, unit: str, description: str) -> ca.SX:
+        taken = {v.name for v in self.states + self.inputs + self.params + self.noises}
+        if name in taken:
+            raise ModelError(f"model '{self.name}': symbol '{name}' is declared twice")
+        if not name.isidentifier():
+            raise ModelError(f"model '{self.name}': symbol name '{name}' is not an identifier")
+        symbol = ca.SX.sym(name)
+        table.append(Variable(name, unit, description))
+        self._symbols[kind].append(symbol)
+        return symbol
+
+    def state(self, name: str, unit: str, description: str) -> ca.SX:
+        """Declare a state; returns its scalar symbol."""
+        return self._declare("x", self.states, name, unit, description)
+
+    def input(self, name: str, unit: str, description: str) -> ca.SX:
+        """Declare a known input u (a control, or a sensor used as an input)."""
+        return self._declare("u", self.inputs, name, unit, description)
+
+    def param(self, name: str, unit: str, description: str, default: float) -> ca.SX:
+        """Declare a runtime parameter p with its default value (changeable without a rebuild)."""
+        self.param_defaults.append(float(default))
+        return self._declare("p", self.params, name, unit, description)
+
+    def noise(self, name: str, unit: str, description: str) -> ca.SX:
+        """Declare a non-additive process noise w entering the dynamics."""
+        return self._declare("w", self.noises, name, unit, description)
+
+    # ----------------------------------------------------------------- vectors
+    @property
+    def x(self) -> ca.SX:
+        return ca.vertcat(*self._symbols["x"]) if self.states else ca.SX(0, 1)
+
+    @property
+    def u(self) -> ca.SX:
+        return ca.vertcat(*self._symbols["u"]) if self.inputs else ca.SX(0, 1)
+
+    @property
+    def p(self) -> ca.SX:
+        return ca.vertcat(*self._symbols["p"]) if self.params else ca.SX(0, 1)
+
+    @property
+    def w(self) -> ca.SX:
+        return ca.vertcat(*self._symbols["w"]) if self.noises else ca.SX(0, 1)
+
+    @property
+    def nx(self) -> int:
+        return len(self.states)
+
+    def state_names(self) -> list[str]:
+        return [v.name for v in self.states]
+
+    # ----------------------------------------------------------------- equations
+    def set_dynamics(self, derivatives: dict[str, ca.SX]) -> None:
+        """Set dx/dt, one expression per state name (every state exactly once)."""
+        names = self.state_names()
+        missing = [n for n in names if n not in derivatives]
+        extra = [n for n in derivatives if n not in names]
+        if missing or extra:
+            raise ModelError(
+                f"model '{self.name}': dynamics must give d/dt of every state exactly once; "
+                f"missing {missing}, not states {extra}")
+        rows = []
+        for name in names:
+            expr = ca.SX(derivatives[name])
+            if expr.shape != (1, 1):
+                raise ModelError(f"model '{self.name}': d{name}/dt has shape {expr.shape}, expected (1, 1)")
+            rows.append(expr)
+        self.f = ca.vertcat(*rows)
+        self._check_free_symbols("dynamics", self.f, extra_allowed=[])
+
+    def measurement_params(self, measurement: str, params: Sequence[tuple[str, str, str]]) -> list[ca.SX]:
+        """Declare the runtime parameters of one measurement (before calling :meth:`measurement`)."""
+        symbols = [ca.SX.sym(f"{measurement}_{n}") for n, _, _ in params]
+        self._pending_q = (measurement, [Variable(*spec) for spec in params], symbols)
+        return symbols
+
+    def measurement(self, name: str, outputs: Sequence[tuple[str, str, str, ca.SX]],
+                    sigma: Sequence[float], wrap: Sequence[bool] | None = None) -> None:
+        """Add a measurement ``z = h(...)``: (name, unit, description, expression) per component."""
+        if name in self.measurements:
+            raise ModelError(f"model '{self.name}': measurement '{name}' is declared twice")
+        pending = self._pending_q
+        q_vars, q_syms = ([], [])
+        if pending is not None and pending[0] == name:
+            q_vars, q_syms = pending[1], pending[2]
+            self._pending_q = None
+        variables = [Variable(n, unit, desc) for n, unit, desc, _ in outputs]
+        h = ca.vertcat(*[ca.SX(expr) for *_, expr in outputs])
+        sigma = np.asarray(sigma, dtype=float).ravel()
+        wrap = tuple(bool(b) for b in (wrap if wrap is not None else [False] * len(variables)))
+        if sigma.size != len(variables) or len(wrap) != len(variables):
+            raise ModelError(f"measurement '{name}': {len(variables)} outputs but {sigma.size} sigmas "
+                             f"and {len(wrap)} wrap flags")
+        q = ca.vertcat(*q_syms) if q_syms else ca.SX(0, 1)
+        self._check_free_symbols(f"measurement '{name}'", h, extra_allowed=q_syms)
+        self.measurements[name] = Measurement(name, variables, h, q_vars, q, sigma, wrap)
+
+    def _check_free_symbols(self, what: str, expr: ca.SX, extra_allowed: list[ca.SX]) -> None:
+        known = {s.name() for kind in self._symbols.values() for s in kind}
+        known |= {self.t.name()} | {s.name() for s in extra_allowed}
+        unknown = sorted({s.name() for s in ca.symvar(expr)} - known)
+        if unknown:
+            raise ModelError(f"model '{self.name}': {what} uses undeclared symbols {unknown}; "
+                             f"declare them with state()/input()/param()/noise()")
+
+    # ----------------------------------------------------------------- checks
+    def validate(self) -> "Model":
+        """Raise ModelError if the model is incomplete; return self for chaining."""
+        if self.f is None:
+            raise ModelError(f"model '{self.name}': set_dynamics() was never called")
+        if not self.states:
+            raise ModelError(f"model '{self.name}': no states declared")
+        return self
+
+    def describe(self) -> dict:
+        """A JSON-ready description of every symbol (for manifests and documentation)."""
+        return {
+            "name": self.name,
+            "description": self.description,
+            "paper": self.paper,
+            "states": [v.as_dict() for v in self.states],
+            "inputs": [v.as_dict() for v in self.inputs],
+            "params": [dict(v.as_dict(), default=d) for v, d in zip(self.params, self.param_defaults)],
+            "noises": [v.as_dict() for v in self.noises],
+            "measurements": {
+                m.name: {"outputs": [v.as_dict() for v in m.outputs], "params": [v.as_dict() for v in m.params],
+                         "sigma": m.sigma.tolist(), "wrap": list(m.wrap)}
+                for m in self.measurements.values()},
+        }

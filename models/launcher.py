@@ -1,0 +1,226 @@
+"""KSLV-I launcher over a rotating spherical Earth, tracked by radar (paper 004).
+
+Baek, Park, Park, Choi, Lim, Park, "Real-time trajectory estimation of space launch vehicle
+using extended Kalman filter and unscented Kalman filter", J. Astron. Space Sci. 22(4), 2005.
+
+- State, eq (4): x = [V, gamma, psi, r, theta, phi] — speed relative to the rotating Earth,
+  flight-path angle, heading (from East towards North), geocentric radius, longitude, latitude.
+- Forces, eq (5): F_T = T cos(alpha) - D, F_N = T sin(alpha) + L, bank sigma = 0.
+- Dynamics, eq (6) (Vinh 1981), omega = 7.292115e-5 rad/s, inverse-square gravity.
+- Radar, eq (7): range R, elevation E, azimuth A (from North, clockwise) from a station.
+
+Choices the paper leaves open (documented, each a named constant below):
+
+- Earth: a sphere of radius R_EARTH = 6378.137 km for the vehicle *and* the radar stations
+  (the paper's r = 6678.137 km "corresponds to 300 km altitude", which fixes this radius).
+  Station latitudes of section 3.2 are placed on that sphere; "up" at a station is radial.
+- Atmosphere: exponential, rho = 1.225 exp(-h / 7.2 km); speed of sound 340 m/s; drag
+  coefficient Cd(M) = 0.25 + 0.25 / (1 + ((M - 1.1)/0.4)^2) (transonic peak 0.5); lift slope
+  CL_alpha = 2 /rad; reference area from the stage diameter of Table 1.
+- Table 1 is not self-consistent: stage 1 thrust 178.0 tf with 625.2 kg/s implies Isp 285 s,
+  not 248 s; stage 2's 36.8 kg/s over 79.3 s is 2.92 t, not 2.1 t, and Table 2 burns it for
+  73.3 s (361.0-434.3 s). We keep the thrusts, the stage-1 flow (625.2 kg/s x 131.0 s = 81.9 t,
+  consistent) and Table 2's burn window, and *solve* the stage-2 mass flow together with the
+  guidance so the burnout meets the boundary conditions (the solved flow is reported).
+- Guidance (not given in the paper): vertical-ish lift-off with initial flight-path angle
+  gamma_0 (a pitch kick), then angle of attack alpha(t) = a1 (t/t1)^2 + a2 (t/t1) in stage 1,
+  zero in the coast, and alpha(t) = b0 + b1 (t - t_ign) in stage 2 (linear steering). The
+  numbers are solved with IPOPT by ``symkf.scenarios.launcher_guidance`` to meet Table 2;
+  its output is pasted into GUIDANCE below.
+"""
+from __future__ import annotations
+
+import casadi as ca
+import numpy as np
+
+from .base import Model
+
+# ---------------------------------------------------------------- physical constants
+G0 = 9.80665                      # m/s^2, standard gravity (tonne-force -> N)
+MU_EARTH = 3.986004418e14         # m^3/s^2, WGS-84 GM
+R_EARTH = 6378.137e3              # m, sphere radius (paper: r = 6678.137 km <-> 300 km altitude)
+OMEGA_EARTH = 7.292115e-5         # rad/s, paper 004 after eq (6)
+DEG = np.pi / 180.0
+
+# ---------------------------------------------------------------- Table 1: vehicle
+STAGE1_MASS = 87.2e3              # kg, Table 1 total mass, stage 1
+STAGE1_PROPELLANT = 81.9e3        # kg, Table 1
+STAGE1_THRUST = 178.0e3 * G0      # N, Table 1 (178.0 tonne-force)
+STAGE1_FLOW = 625.2               # kg/s, Table 1
+STAGE1_DIAMETER = 2.4             # m, Table 1
+STAGE2_MASS = 3.4e3               # kg, Table 1
+STAGE2_PROPELLANT = 2.1e3         # kg, Table 1 (not used: see module docstring)
+STAGE2_THRUST = 12.1e3 * G0       # N, Table 1 (12.1 tonne-force)
+STAGE2_FLOW_TABLE = 36.8          # kg/s, Table 1 (replaced by the solved GUIDANCE value)
+STAGE2_DIAMETER = 1.27            # m, Table 1
+PAYLOAD_MASS = 0.11e3             # kg, Table 1
+FAIRING_MASS = 0.1e3              # kg, Table 1
+LIFTOFF_MASS = STAGE1_MASS + STAGE2_MASS + PAYLOAD_MASS + FAIRING_MASS
+
+# ---------------------------------------------------------------- Table 2: flight events (s)
+T_STAGE1_BURNOUT = 131.0          # Table 2: 1st-stage separation
+T_FAIRING = 153.9                 # Table 2: fairing jettison
+T_STAGE2_IGNITION = 361.0         # Table 2: 2nd-stage ignition
+T_INSERTION = 434.3               # Table 2: 2nd-stage separation / perigee insertion
+
+#: Table 2 rows: (time s, event, altitude km, speed km/s).
+FLIGHT_EVENTS = (
+    (0.0, "lift-off", 0.0, 0.02),
+    (131.0, "stage-1 separation", 78.8, 4.68),
+    (153.9, "fairing jettison", 115.4, 4.60),
+    (361.0, "stage-2 ignition", 285.4, 4.23),
+    (434.3, "perigee insertion", 300.0, 8.04),
+)
+#: Boundary conditions at insertion (section 3.1): r, gamma, V.
+INSERTION_RADIUS = 6678.137e3     # m
+INSERTION_FLIGHT_PATH_ANGLE = 0.0  # rad
+INSERTION_SPEED = 8.038e3         # m/s
+
+# ---------------------------------------------------------------- atmosphere (our choice)
+RHO_SEA_LEVEL = 1.225             # kg/m^3
+SCALE_HEIGHT = 7.2e3              # m
+SPEED_OF_SOUND = 340.0            # m/s
+LIFT_SLOPE = 2.0                  # 1/rad
+
+# ---------------------------------------------------------------- launch site and radars
+#: Naro Space Center (not printed in the paper; public coordinates), rad.
+LAUNCH_LATITUDE = 34.4316 * DEG
+LAUNCH_LONGITUDE = 127.5352 * DEG
+#: Heading at lift-off, from East towards North: -80 deg is a course of 170 deg (south by east),
+#: toward the paper's down-range stations 2 and 3.
+LAUNCH_HEADING = -80.0 * DEG
+LIFTOFF_SPEED = 20.0              # m/s, Table 2 (0.02 km/s at t = 0)
+
+#: Section 3.2: radar stations (geodetic latitude, longitude) in degrees, and tracking windows.
+RADAR_STATIONS_DEG = ((33.8, 126.8), (28.8, 129.5), (24.5, 125.4))
+RADAR_HANDOVER_TIMES = (178.0, 311.8)           # s: station 1 -> 2, station 2 -> 3
+RADAR_SIGMA = (10.0, 0.1e-3, 0.1e-3)            # m, rad, rad: section 3.2
+
+#: Guidance and stage-2 flow solved by ``symkf.scenarios.launcher_guidance`` (IPOPT) to meet
+#: Table 2 and the insertion conditions. Regenerate with ``symkf design-guidance``.
+GUIDANCE = {
+    "initial_flight_path_angle": 1.3962634015954636,   # rad (80 deg)
+    "stage1_alpha_quadratic": 0.0,                       # rad
+    "stage1_alpha_linear": 0.0,                          # rad
+    "stage2_alpha_0": 0.0,                               # rad
+    "stage2_alpha_rate": 0.0,                            # rad/s
+    "stage2_mass_flow": 36.8,                            # kg/s
+}
+GUIDANCE_PARAMS = ("stage1_alpha_quadratic", "stage1_alpha_linear", "stage2_alpha_0",
+                   "stage2_alpha_rate", "stage2_mass_flow")
+
+
+def station_params(station: int) -> np.ndarray:
+    """Measurement parameters [latitude, longitude] (rad) of radar station 1, 2 or 3."""
+    lat, lon = RADAR_STATIONS_DEG[station - 1]
+    return np.array([lat * DEG, lon * DEG])
+
+
+def station_at(t: float) -> int:
+    """The tracking station (1, 2 or 3) at time t, section 3.2's hand-over schedule."""
+    return 1 + sum(t >= handover for handover in RADAR_HANDOVER_TIMES)
+
+
+def initial_state(guidance: dict | None = None) -> np.ndarray:
+    """The true state at lift-off: Table 2 speed, the solved pitch kick, the launch site."""
+    g = GUIDANCE if guidance is None else guidance
+    return np.array([LIFTOFF_SPEED, g["initial_flight_path_angle"], LAUNCH_HEADING,
+                     R_EARTH, LAUNCH_LONGITUDE, LAUNCH_LATITUDE])
+
+
+def _step(t, t0):
+    """1 for t >= t0, else 0 (event switches of the thrust and mass schedule)."""
+    return ca.if_else(t >= t0, 1.0, 0.0)
+
+
+def _propulsion(t, stage2_mass_flow):
+    """Thrust (N), mass (kg) and reference area (m^2) against time: Tables 1 and 2."""
+    stage1_on = 1 - _step(t, T_STAGE1_BURNOUT)
+    stage2_on = _step(t, T_STAGE2_IGNITION) * (1 - _step(t, T_INSERTION))
+    thrust = stage1_on * STAGE1_THRUST + stage2_on * STAGE2_THRUST
+    upper_mass = STAGE2_MASS + PAYLOAD_MASS + FAIRING_MASS * (1 - _step(t, T_FAIRING))
+    burned2 = stage2_mass_flow * (ca.fmin(ca.fmax(t, T_STAGE2_IGNITION), T_INSERTION) - T_STAGE2_IGNITION)
+    mass = stage1_on * (LIFTOFF_MASS - STAGE1_FLOW * t) + (1 - stage1_on) * (upper_mass - burned2)
+    diameter = stage1_on * STAGE1_DIAMETER + (1 - stage1_on) * STAGE2_DIAMETER
+    return thrust, mass, np.pi / 4 * diameter**2
+
+
+def _angle_of_attack(t, a1, a2, b0, b1):
+    """The guidance law (our design, module docstring): alpha(t) in rad."""
+    stage1 = (1 - _step(t, T_STAGE1_BURNOUT)) * (a1 * (t / T_STAGE1_BURNOUT) ** 2 + a2 * t / T_STAGE1_BURNOUT)
+    stage2 = _step(t, T_STAGE2_IGNITION) * (b0 + b1 * (t - T_STAGE2_IGNITION))
+    return stage1 + stage2
+
+
+def _aerodynamics(V, r, alpha, area):
+    """Drag and lift (N): exponential atmosphere, Mach-dependent Cd (module docstring)."""
+    altitude = r - R_EARTH
+    rho = RHO_SEA_LEVEL * ca.exp(-altitude / SCALE_HEIGHT)
+    mach = V / SPEED_OF_SOUND
+    drag_coefficient = 0.25 + 0.25 / (1 + ((mach - 1.1) / 0.4) ** 2)
+    dynamic_pressure = 0.5 * rho * V**2
+    return dynamic_pressure * drag_coefficient * area, dynamic_pressure * LIFT_SLOPE * alpha * area
+
+
+def build() -> Model:
+    """The launcher model: dynamics eq (6) with forces eq (5), radar eq (7)."""
+    m = Model("launcher", "KSLV-I launcher over a rotating Earth, three tracking radars",
+                  paper="Baek et al. 2005, J. Astron. Space Sci. 22(4) (paper 004)")
+    V = m.state("V", "m/s", "speed relative to the rotating Earth")
+    gamma = m.state("gamma", "rad", "flight-path angle above the local horizontal")
+    psi = m.state("psi", "rad", "heading, from East towards North")
+    r = m.state("r", "m", "distance from the Earth's centre")
+    theta = m.state("theta", "rad", "longitude")
+    phi = m.state("phi", "rad", "geocentric latitude")
+    a1, a2, b0, b1, flow2 = (m.param(name, unit, desc, GUIDANCE[name]) for name, unit, desc in (
+        ("stage1_alpha_quadratic", "rad", "stage-1 angle of attack, coefficient of (t/t1)^2"),
+        ("stage1_alpha_linear", "rad", "stage-1 angle of attack, coefficient of t/t1"),
+        ("stage2_alpha_0", "rad", "stage-2 angle of attack at ignition"),
+        ("stage2_alpha_rate", "rad/s", "stage-2 angle-of-attack rate"),
+        ("stage2_mass_flow", "kg/s", "stage-2 mass flow (solved, see docstring)")))
+    t = m.t
+
+    thrust, mass, area = _propulsion(t, flow2)
+    alpha = _angle_of_attack(t, a1, a2, b0, b1)
+    drag, lift = _aerodynamics(V, r, alpha, area)
+    force_tangential = thrust * ca.cos(alpha) - drag          # eq (5)
+    force_normal = thrust * ca.sin(alpha) + lift              # eq (5)
+    bank = 0.0                                                # sigma: planar guidance
+    g = MU_EARTH / r**2
+    w = OMEGA_EARTH
+    sg, cg, sp, cp, sf, cf = ca.sin(gamma), ca.cos(gamma), ca.sin(psi), ca.cos(psi), ca.sin(phi), ca.cos(phi)
+
+    # eq (6), term by term as printed
+    dV = force_tangential / mass - g * sg + w**2 * r * cf * (sg * cf - cg * sp * sf)
+    dgamma = (force_normal * np.cos(bank) / mass - g * cg + V**2 / r * cg + 2 * w * V * cp * cf
+              + w**2 * r * cf * (cg * cf + sg * sp * sf)) / V
+    dpsi = (force_normal * np.sin(bank) / (mass * cg) - V**2 / r * cg * cp * sf / cf
+            + 2 * w * V * (sg / cg * sp * cf - sf) - w**2 * r / cg * cp * sf * cf) / V
+    m.set_dynamics({"V": dV, "gamma": dgamma, "psi": dpsi, "r": V * sg,
+                    "theta": V * cg * cp / (r * cf), "phi": V * cg * sp / r})
+
+    station_lat, station_lon = m.measurement_params("radar", [
+        ("station_latitude", "rad", "radar station latitude (on the spherical Earth)"),
+        ("station_longitude", "rad", "radar station longitude")])
+    rng, elevation, azimuth = _radar(r, theta, phi, station_lat, station_lon)
+    m.measurement("radar", [
+        ("range", "m", "slant range from the station, eq (7)", rng),
+        ("elevation", "rad", "elevation above the station's horizontal, eq (7)", elevation),
+        ("azimuth", "rad", "azimuth from North, clockwise, eq (7)", azimuth)],
+        sigma=RADAR_SIGMA, wrap=(False, False, True))
+    m.codegen_defaults = {"rk4_substeps": 1}
+    return m
+
+
+def _radar(r, theta, phi, station_lat, station_lon):
+    """Range, elevation and azimuth of the vehicle seen from a station on the sphere, eq (7)."""
+    def on_sphere(radius, lat, lon):
+        return ca.vertcat(radius * ca.cos(lat) * ca.cos(lon), radius * ca.cos(lat) * ca.sin(lon),
+                          radius * ca.sin(lat))
+    los = on_sphere(r, phi, theta) - on_sphere(R_EARTH, station_lat, station_lon)
+    slat, clat, slon, clon = ca.sin(station_lat), ca.cos(station_lat), ca.sin(station_lon), ca.cos(station_lon)
+    east = -slon * los[0] + clon * los[1]
+    north = -slat * clon * los[0] - slat * slon * los[1] + clat * los[2]
+    up = clat * clon * los[0] + clat * slon * los[1] + slat * los[2]
+    horizontal = ca.sqrt(east**2 + north**2)
+    return ca.sqrt(east**2 + north**2 + up**2), ca.atan2(up, horizontal), ca.atan2(east, north)

@@ -1,0 +1,167 @@
+"""Two ways to call a kernel on numpy buffers: the compiled library (ctypes) or CasADi's VM.
+
+Both expose the same :class:`BoundCall` — a kernel bound once to a fixed set of numpy buffers,
+called with no arguments, returning the status code — so filters never know which one runs.
+The compiled path passes one pointer array to ``<model>_<kernel>_v``: the call does no
+allocation and no conversion. ctypes releases the GIL during the call, so Monte Carlo runs can
+use threads.
+"""
+from __future__ import annotations
+
+import ctypes
+import functools
+import json
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..codegen.spec import STATUS_CODES, STATUS_NONFINITE, Bundle, Kernel
+
+
+class SymkfError(RuntimeError):
+    """A kernel returned a non-zero code; ``code`` and ``name`` say which failure it was."""
+
+    def __init__(self, kernel: str, code: int, detail: str = ""):
+        name, meaning = STATUS_CODES.get(code, (f"code {code}", "unknown failure"))
+        self.code, self.name, self.kernel = code, name, kernel
+        text = f"{kernel}: {name} — {meaning}; x and P are unchanged"
+        super().__init__(text + (f" ({detail})" if detail else ""))
+
+
+class StaleLibraryError(RuntimeError):
+    """The library on disk was generated from different sources than the manifest says."""
+
+
+@dataclass(frozen=True)
+class KernelInfo:
+    """A kernel as described by the manifest (name, argument names, shapes)."""
+
+    name: str
+    inputs: tuple[tuple[str, tuple[int, int]], ...]
+    outputs: tuple[tuple[str, tuple[int, int]], ...]
+    carried: tuple[str, ...]
+    per_step: tuple[str, ...]
+
+    @classmethod
+    def from_manifest(cls, entry: dict) -> "KernelInfo":
+        def args(items):
+            return tuple((a["name"], tuple(a["shape"])) for a in items)
+        return cls(entry["name"], args(entry["inputs"]), args(entry["outputs"]),
+                   tuple(entry["carried"]), tuple(entry["per_step"]))
+
+    @classmethod
+    def from_kernel(cls, kernel: Kernel) -> "KernelInfo":
+        return cls(kernel.name, tuple((a.name, a.shape) for a in kernel.inputs),
+                   tuple((a.name, a.shape) for a in kernel.outputs), kernel.carried, kernel.per_step)
+
+    def pointer_names(self) -> list[tuple[str, bool]]:
+        """(buffer name, is_output) in the C argument order (status excluded)."""
+        return [(n, False) for n, _ in self.inputs] + [(n, True) for n, _ in self.outputs[:-1]]
+
+
+def _check_buffer(kernel: str, name: str, buffer: np.ndarray, shape: tuple[int, int]) -> None:
+    size = shape[0] * shape[1]
+    if buffer.dtype != np.float64 or buffer.size != size or not (
+            buffer.flags.f_contiguous or buffer.ndim <= 1 or min(shape) == 1):
+        raise ValueError(f"{kernel}: buffer '{name}' must be float64 with {size} elements in column-major order")
+
+
+class CompiledBackend:
+    """The compiled library of one model, loaded with ctypes and checked against its manifest."""
+
+    kind = "compiled"
+
+    def __init__(self, library: Path, manifest: dict):
+        self.manifest = manifest
+        self.model = manifest["model"]
+        self.library_path = library
+        self.lib = ctypes.CDLL(str(library))
+        hash_fn = getattr(self.lib, f"{self.model}_content_hash")
+        hash_fn.restype = ctypes.c_char_p
+        embedded = hash_fn().decode()
+        if embedded != manifest["content_hash"]:
+            raise StaleLibraryError(f"{library} was generated with content hash {embedded}, the manifest "
+                                    f"says {manifest['content_hash']}: rebuild with `symkf build {self.model} --force`")
+        self.kernels = {k["name"]: KernelInfo.from_manifest(k) for k in manifest["kernels"]}
+
+    @classmethod
+    def from_directory(cls, directory: Path) -> "CompiledBackend":
+        manifest = json.loads((directory / "manifest.json").read_text())
+        return cls(directory / manifest["hashed_library"], manifest)
+
+    def bind(self, kernel: str, buffers: dict[str, np.ndarray]) -> "BoundCall":
+        info = self.kernels[kernel]
+        shapes = dict(info.inputs + info.outputs)
+        for name, _ in info.pointer_names():
+            _check_buffer(kernel, name, buffers[name], shapes[name])
+        pointers = (ctypes.c_void_p * max(len(info.pointer_names()), 1))(
+            *[buffers[name].ctypes.data for name, _ in info.pointer_names()])
+        function = getattr(self.lib, f"{self.model}_{kernel}_v")
+        function.argtypes = [ctypes.c_void_p]
+        function.restype = ctypes.c_int
+        return BoundCall(kernel, function, ctypes.addressof(pointers), keep_alive=(pointers, buffers))
+
+    def run_function(self, kernel: str):
+        """``<model>_<kernel>_run`` with int/pointer argument types set."""
+        info = self.kernels[kernel]
+        function = getattr(self.lib, f"{self.model}_{kernel}_run")
+        function.argtypes = [ctypes.c_int] + [ctypes.c_void_p] * (len(info.inputs) + len(info.carried) + 1)
+        function.restype = ctypes.c_int
+        return function
+
+
+class BoundCall(functools.partial):
+    """A kernel bound to its buffers: calling it runs the kernel and returns the status code.
+
+    For the compiled backend this is ``partial(c_function, pointer_array_address)``: one ctypes
+    call with one integer argument.
+    """
+
+    def __new__(cls, kernel: str, function, *address, keep_alive=None):
+        self = super().__new__(cls, function, *address)
+        self.kernel, self.keep_alive = kernel, keep_alive
+        return self
+
+
+class VirtualMachineBackend:
+    """The same kernels evaluated by CasADi's virtual machine (no C compiler needed; slower)."""
+
+    kind = "casadi-vm"
+
+    def __init__(self, bundle: Bundle, reason: str = ""):
+        self.model = bundle.model_name
+        self.functions = {k.name: k.function for k in bundle.kernels}
+        self.kernels = {k.name: KernelInfo.from_kernel(k) for k in bundle.kernels}
+        if reason:
+            warnings.warn(f"{reason}; evaluating '{self.model}' in CasADi's virtual machine "
+                          "(same numbers, much slower)", RuntimeWarning, stacklevel=3)
+
+    def bind(self, kernel: str, buffers: dict[str, np.ndarray]) -> BoundCall:
+        info, function = self.kernels[kernel], self.functions[kernel]
+        shapes = dict(info.inputs + info.outputs)
+        for name, _ in info.pointer_names():
+            _check_buffer(kernel, name, buffers[name], shapes[name])
+
+        def evaluate() -> int:
+            args = [buffers[n].reshape(s, order="F") for n, s in info.inputs]
+            results = function.call(args)
+            status = int(results[-1])
+            if status:
+                return status
+            values = [np.asarray(r, dtype=float).reshape(-1, order="F") for r in results[:-1]]
+            if not all(np.isfinite(v).all() for v in values):
+                return STATUS_NONFINITE
+            for (name, _), value in zip(info.outputs[:-1], values):
+                buffers[name].reshape(-1, order="F")[:] = value
+            return 0
+
+        return BoundCall(kernel, evaluate)
+
+    def run_function(self, kernel: str):
+        return None
+
+
+__all__ = ["BoundCall", "CompiledBackend", "KernelInfo", "StaleLibraryError", "SymkfError",
+           "VirtualMachineBackend"]
