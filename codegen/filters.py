@@ -101,7 +101,7 @@ class ModelFunctions:
                                            hnames, ["H"], options)
 
 
-def _kernel(name: str, doc: str, symbols: Symbols, extra_sym: dict, extra_arg: dict,
+def makemake_kernel(name: str, doc: str, symbols: Symbols, extra_sym: dict, extra_arg: dict,
             inputs: list[str], outputs: list[tuple[str, ca.SX]], carried=(), per_step=()) -> Kernel:
     sym = {**symbols.sym, **extra_sym}
     args = {**symbols.arg, **extra_arg}
@@ -120,20 +120,20 @@ def model_kernels(model: Model, symbols: Symbols, fns: ModelFunctions) -> list[K
     f = continuous_dynamics(model)
     step_args = (s["t"], s["dt"], s["x"], s["u"], s["p"])
     kernels = [
-        _kernel("f", "Continuous dynamics dx/dt = f(t, x, u, p).", symbols, {}, {},
+        make_kernel("f", "Continuous dynamics dx/dt = f(t, x, u, p).", symbols, {}, {},
                 ["t", "x", "u", "p"], [("xdot", f(s["t"], s["x"], s["u"], s["p"], fns.zero_w)), ("status", ca.SX(0))]),
-        _kernel("fd", "Discrete dynamics: RK4 from t to t + dt.", symbols, {}, {},
+        make_kernel("fd", "Discrete dynamics: RK4 from t to t + dt.", symbols, {}, {},
                 ["t", "dt", "x", "u", "p"], [("x", fns.fd(*step_args)), ("status", ca.SX(0))]),
-        _kernel("jac_fd", "State-transition Jacobian F = d f_d / d x (derived by CasADi).", symbols, {}, {},
+        make_kernel("jac_fd", "State-transition Jacobian F = d f_d / d x (derived by CasADi).", symbols, {}, {},
                 ["t", "dt", "x", "u", "p"], [("F", fns.jac_fd(*step_args)), ("status", ca.SX(0))]),
     ]
     for name in model.measurements:
         msym, marg = symbols.measurement(name)
         meas_args = (s["t"], s["x"], s["u"], s["p"], msym["q"])
         kernels += [
-            _kernel(f"h_{name}", f"Measurement '{name}': z = h(t, x, u, p, q).", symbols, msym, marg,
+            make_kernel(f"h_{name}", f"Measurement '{name}': z = h(t, x, u, p, q).", symbols, msym, marg,
                     ["t", "x", "u", "p", "q"], [("z", fns.h[name](*meas_args)), ("status", ca.SX(0))]),
-            _kernel(f"jac_h_{name}", f"Measurement Jacobian H = dh/dx of '{name}' (derived by CasADi).",
+            make_kernel(f"jac_h_{name}", f"Measurement Jacobian H = dh/dx of '{name}' (derived by CasADi).",
                     symbols, msym, marg, ["t", "x", "u", "p", "q"],
                     [("H", fns.jac_h[name](*meas_args)), ("status", ca.SX(0))]),
         ]
@@ -190,13 +190,13 @@ def ekf_update_expr(symbols: Symbols, fns: ModelFunctions, name: str, msym: dict
 def ekf_kernels(model: Model, symbols: Symbols, fns: ModelFunctions) -> list[Kernel]:
     s = symbols.sym
     x_pred, P_pred = ekf_predict_expr(symbols, fns, s["x"], s["P"], s["t"], s["dt"])
-    kernels = [_kernel("ekf_predict", "EKF prediction from t to t + dt (P = F P F^T + Q dt).",
+    kernels = [make_kernel("ekf_predict", "EKF prediction from t to t + dt (P = F P F^T + Q dt).",
                        symbols, {}, {}, ["t", "dt", "x", "P", "u", "p", "Q"],
                        [("x", x_pred), ("P", P_pred), ("status", ca.SX(0))])]
     for name, meas in model.measurements.items():
         msym, marg = symbols.measurement(name)
         upd = ekf_update_expr(symbols, fns, name, msym, meas.wrap, s["x"], s["P"], s["t"])
-        kernels.append(_kernel(
+        kernels.append(make_kernel(
             f"ekf_update_{name}", f"EKF update with measurement '{name}' at time t (Joseph form, masked).",
             symbols, msym, marg, ["t", "x", "P", "u", "p", "q", "z", "mask", "R"],
             _update_outputs(upd, s["x"], s["P"])))
@@ -299,13 +299,13 @@ def ukf_kernels(model: Model, symbols: Symbols, fns: ModelFunctions) -> list[Ker
     x_pred, P_pred, ok_pred = ukf_predict_expr(symbols, fns, s["x"], s["P"], s["t"], s["dt"])
     x_out, P_out, status = _keep_on_failure(ok_pred, [x_pred, P_pred], [s["x"], s["P"]], STATUS_NOT_PD)
     status = linalg.select(s["kappa"] + model.nx > 0, status, STATUS_DOMAIN)
-    kernels = [_kernel("ukf_predict", "UKF prediction from t to t + dt (2n+1 sigma points, eq (1)-(3)).",
+    kernels = [make_kernel("ukf_predict", "UKF prediction from t to t + dt (2n+1 sigma points, eq (1)-(3)).",
                        symbols, {}, {}, ["t", "dt", "x", "P", "u", "p", "Q", "kappa"],
                        [("x", x_out), ("P", P_out), ("status", status)])]
     for name, meas in model.measurements.items():
         msym, marg = symbols.measurement(name)
         upd = ukf_update_expr(symbols, fns, name, msym, meas.wrap, s["x"], s["P"], s["t"])
-        kernels.append(_kernel(
+        kernels.append(make_kernel(
             f"ukf_update_{name}", f"UKF update with measurement '{name}' at time t (sigma points redrawn, masked).",
             symbols, msym, marg, ["t", "x", "P", "u", "p", "q", "z", "mask", "R", "kappa"],
             _update_outputs(upd, s["x"], s["P"])))
