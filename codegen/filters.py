@@ -101,7 +101,7 @@ class ModelFunctions:
                                            hnames, ["H"], options)
 
 
-def makemake_kernel(name: str, doc: str, symbols: Symbols, extra_sym: dict, extra_arg: dict,
+def make_kernel(name: str, doc: str, symbols: Symbols, extra_sym: dict, extra_arg: dict,
             inputs: list[str], outputs: list[tuple[str, ca.SX]], carried=(), per_step=()) -> Kernel:
     sym = {**symbols.sym, **extra_sym}
     args = {**symbols.arg, **extra_arg}
