@@ -17,11 +17,13 @@ Choices the paper leaves open (documented, each a named constant below):
 - Atmosphere: exponential, rho = 1.225 exp(-h / 7.2 km); speed of sound 340 m/s; drag
   coefficient Cd(M) = 0.25 + 0.25 / (1 + ((M - 1.1)/0.4)^2) (transonic peak 0.5); lift slope
   CL_alpha = 2 /rad; reference area from the stage diameter of Table 1.
-- Table 1 is not self-consistent: stage 1 thrust 178.0 tf with 625.2 kg/s implies Isp 285 s,
-  not 248 s; stage 2's 36.8 kg/s over 79.3 s is 2.92 t, not 2.1 t, and Table 2 burns it for
-  73.3 s (361.0-434.3 s). We keep the thrusts, the stage-1 flow (625.2 kg/s x 131.0 s = 81.9 t,
-  consistent) and Table 2's burn window, and *solve* the stage-2 mass flow together with the
-  guidance so the burnout meets the boundary conditions (the solved flow is reported).
+- Table 1 is not self-consistent: the printed thrusts (178.0 tf, 12.1 tf) disagree with
+  Isp x g0 x flow (155.0 tf, 10.8 tf); stage 2's 36.8 kg/s over 79.3 s is 2.92 t, not 2.1 t,
+  and Table 2 burns it for 73.3 s (361.0-434.3 s). We take thrust = Isp g0 mdot with Table 1's
+  Isp (both stages) and stage-1 flow (625.2 kg/s x 131.0 s = 81.9 t, consistent), because with
+  178.0 tf the stage-1 burnout speed is about 5.7 km/s at Table 2's 78.8 km instead of 4.68;
+  the stage-2 flow is *solved* with the guidance so the burnout meets the insertion conditions
+  over Table 2's burn window (the solved value is in GUIDANCE; Table 1 says 36.8 kg/s).
 - Guidance (not given in the paper): vertical-ish lift-off with initial flight-path angle
   gamma_0 (a pitch kick), then angle of attack alpha(t) = a1 (t/t1)^2 + a2 (t/t1) in stage 1,
   zero in the coast, and alpha(t) = b0 + b1 (t - t_ign) in stage 2 (linear steering). The
@@ -45,12 +47,15 @@ DEG = np.pi / 180.0
 # ---------------------------------------------------------------- Table 1: vehicle
 STAGE1_MASS = 87.2e3              # kg, Table 1 total mass, stage 1
 STAGE1_PROPELLANT = 81.9e3        # kg, Table 1
-STAGE1_THRUST = 178.0e3 * G0      # N, Table 1 (178.0 tonne-force)
+STAGE1_THRUST_TABLE = 178.0e3 * G0  # N, Table 1 (178.0 tonne-force; not used, see docstring)
 STAGE1_FLOW = 625.2               # kg/s, Table 1
+STAGE1_ISP = 248.0                # s, Table 1
+STAGE1_THRUST = STAGE1_ISP * G0 * STAGE1_FLOW   # N: 1.52 MN = 155.0 tf
 STAGE1_DIAMETER = 2.4             # m, Table 1
 STAGE2_MASS = 3.4e3               # kg, Table 1
 STAGE2_PROPELLANT = 2.1e3         # kg, Table 1 (not used: see module docstring)
-STAGE2_THRUST = 12.1e3 * G0       # N, Table 1 (12.1 tonne-force)
+STAGE2_THRUST_TABLE = 12.1e3 * G0  # N, Table 1 (12.1 tonne-force; not used, see docstring)
+STAGE2_ISP = 292.3                # s, Table 1; thrust = STAGE2_ISP * G0 * (solved flow)
 STAGE2_FLOW_TABLE = 36.8          # kg/s, Table 1 (replaced by the solved GUIDANCE value)
 STAGE2_DIAMETER = 1.27            # m, Table 1
 PAYLOAD_MASS = 0.11e3             # kg, Table 1
@@ -99,12 +104,12 @@ RADAR_SIGMA = (10.0, 0.1e-3, 0.1e-3)            # m, rad, rad: section 3.2
 #: Guidance and stage-2 flow solved by ``symkf.scenarios.launcher_guidance`` (IPOPT) to meet
 #: Table 2 and the insertion conditions. Regenerate with ``symkf design-guidance``.
 GUIDANCE = {
-    "initial_flight_path_angle": 1.3962634015954636,   # rad (80 deg)
-    "stage1_alpha_quadratic": 0.0,                       # rad
-    "stage1_alpha_linear": 0.0,                          # rad
-    "stage2_alpha_0": 0.0,                               # rad
-    "stage2_alpha_rate": 0.0,                            # rad/s
-    "stage2_mass_flow": 36.8,                            # kg/s
+    "initial_flight_path_angle": 1.5690510132333955,   # rad (89.9 deg: near-vertical lift-off)
+    "stage1_alpha_quadratic": 0.28627968140984383,      # rad
+    "stage1_alpha_linear": -0.2573925528623888,         # rad
+    "stage2_alpha_0": 0.15275582199622909,              # rad
+    "stage2_alpha_rate": -0.003490658538864803,         # rad/s
+    "stage2_mass_flow": 34.88417424973722,              # kg/s (Table 1: 36.8)
 }
 GUIDANCE_PARAMS = ("stage1_alpha_quadratic", "stage1_alpha_linear", "stage2_alpha_0",
                    "stage2_alpha_rate", "stage2_mass_flow")
@@ -137,7 +142,7 @@ def _propulsion(t, stage2_mass_flow):
     """Thrust (N), mass (kg) and reference area (m^2) against time: Tables 1 and 2."""
     stage1_on = 1 - _step(t, T_STAGE1_BURNOUT)
     stage2_on = _step(t, T_STAGE2_IGNITION) * (1 - _step(t, T_INSERTION))
-    thrust = stage1_on * STAGE1_THRUST + stage2_on * STAGE2_THRUST
+    thrust = stage1_on * STAGE1_THRUST + stage2_on * STAGE2_ISP * G0 * stage2_mass_flow
     upper_mass = STAGE2_MASS + PAYLOAD_MASS + FAIRING_MASS * (1 - _step(t, T_FAIRING))
     burned2 = stage2_mass_flow * (ca.fmin(ca.fmax(t, T_STAGE2_IGNITION), T_INSERTION) - T_STAGE2_IGNITION)
     mass = stage1_on * (LIFTOFF_MASS - STAGE1_FLOW * t) + (1 - stage1_on) * (upper_mass - burned2)
