@@ -287,10 +287,11 @@ def ukf_update_expr(symbols: Symbols, fns: ModelFunctions, name: str, msym: dict
     S = linalg.symmetrize(sum((w * d @ d.T for w, d in zip(weights, dz)), ca.SX.zeros(R.shape)) + R)
     Pxz = sum((w * a @ b.T for w, a, b in zip(weights, dx, dz)), ca.SX.zeros(x.shape[0], R.shape[0]))
     L, ok_s = linalg.cholesky(S)
-    K = linalg.cholesky_solve(L, Pxz.T).T           # K = Pxz S^-1
+    # With U = L^-1 Pxz^T: K y = U^T L^-1 y and K S K^T = U^T U (better conditioned than forming K)
+    U = linalg.solve_lower(L, Pxz.T)
     y = _innovation(msym["z"], z_pred, mask, wrap)
-    x_new = x + K @ y
-    P_new = linalg.symmetrize(P - K @ S @ K.T)
+    x_new = x + U.T @ linalg.solve_lower(L, y)
+    P_new = linalg.symmetrize(P - U.T @ U)
     return x_new, P_new, y, S, ok * ok_s
 
 
