@@ -36,7 +36,15 @@ def casadi_source(bundle: Bundle) -> str:
                                         "casadi_int": "int", "prefix": f"{bundle.model_name}_casadi"})
     for kernel in bundle.kernels:
         gen.add(kernel.function)
-    return _void_unused_parameters(gen.dump())
+    return _typed_literals(_void_unused_parameters(gen.dump()))
+
+
+_FLOAT_LITERAL = re.compile(r"(?<![\w.])(\d+\.\d*(?:[eE][+-]?\d+)?|\d+[eE][+-]?\d+)")
+
+
+def _typed_literals(source: str) -> str:
+    """Cast floating literals to casadi_real, so a float build does no double arithmetic."""
+    return _FLOAT_LITERAL.sub(r"((casadi_real)\1)", source)
 
 
 _DEFINITION = re.compile(r"^(?:static |CASADI_SYMBOL_EXPORT )?[\w ]+?\b(\w+)\(([^()]*)\)\s*\{\s*$")
@@ -226,11 +234,11 @@ LDLIBS = -lm
 
 all: lib{model}.so lib{model}.a
 
-lib{model}.so: {model}.c {model}.h
-\t$(CC) $(CFLAGS) -fPIC -shared -o $@.tmp {model}.c $(LDLIBS) && mv -f $@.tmp $@
-
 {model}.o: {model}.c {model}.h
-\t$(CC) $(CFLAGS) -c -o $@ {model}.c
+\t$(CC) $(CFLAGS) -fPIC -c -o $@ {model}.c
+
+lib{model}.so: {model}.o
+\t$(CC) -shared -o $@.tmp $^ $(LDLIBS) && mv -f $@.tmp $@
 
 lib{model}.a: {model}.o
 \t$(AR) rcs $@ $^

@@ -204,6 +204,10 @@ def ekf_kernels(model: Model, symbols: Symbols, fns: ModelFunctions) -> list[Ker
     return kernels
 
 
+#: Argument order of every generated filter function (a kernel uses the subset it needs).
+CANONICAL_ORDER = ("t", "dt", "x", "P", "u", "p", "Q", "q", "z", "mask", "R", "kappa")
+
+
 def compose_step(name: str, predict: Kernel, update: Kernel) -> Kernel:
     """predict(t, dt) then update at t + dt, as one kernel that calls the two (no code copied).
 
@@ -211,6 +215,7 @@ def compose_step(name: str, predict: Kernel, update: Kernel) -> Kernel:
     update's. If either part fails, x and P come back unchanged with the first failure's code.
     """
     inputs = list(predict.inputs) + [a for a in update.inputs if a.name not in {b.name for b in predict.inputs}]
+    inputs.sort(key=lambda a: CANONICAL_ORDER.index(a.name) if a.name in CANONICAL_ORDER else len(CANONICAL_ORDER))
     sym = {a.name: ca.MX.sym(a.name, *a.shape) for a in inputs}
     pred = predict.function.call({a.name: sym[a.name] for a in predict.inputs})
     upd_args = {a.name: sym[a.name] for a in update.inputs}
