@@ -220,8 +220,11 @@ class KalmanFilter:
         buffers = self.measurements.get(name)
         if buffers is None:
             raise ValueError(f"measurement: '{name}' is not one of {list(self.measurements)}")
-        z_array = np.asarray(z, dtype=float)
-        if z_array.shape != buffers.z.shape:
+        try:
+            z_array = np.asarray(z, dtype=float)
+        except (TypeError, ValueError):
+            z_array = None
+        if z_array is None or z_array.shape != buffers.z.shape:
             z_array = as_array("z", z, buffers.z.shape)
         if mask is not None or nan != "raise" or self._mask_dirty:
             new_mask = self._new_mask(buffers, z_array, mask, nan)
