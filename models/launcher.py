@@ -101,6 +101,29 @@ RADAR_STATIONS_DEG = ((33.8, 126.8), (28.8, 129.5), (24.5, 125.4))
 RADAR_HANDOVER_TIMES = (178.0, 311.8)           # s: station 1 -> 2, station 2 -> 3
 RADAR_SIGMA = (10.0, 0.1e-3, 0.1e-3)            # m, rad, rad: section 3.2
 
+#: Section 4, eq (9) and (10): initial estimation errors dx0 = x - x_hat (small and large).
+INITIAL_ERROR = {
+    "small": (0.001, 1e-12, 1e-12, 0.0, 0.0, 0.0),          # eq (9): m/s, rad, rad, m, rad, rad
+    "large": (10.0, 1e-8, 1e-8, 1000.0, 1e-8, 1e-8),         # eq (10)
+}
+RADAR_RATES_HZ = (20, 10)                                    # section 4: radar data rates
+
+#: Table 3: whole-flight RMS error (eq 11) per state, (EKF, UKF) per case; units m/s, deg, deg,
+#: m, deg, deg. Keys: (rate Hz, "small"|"large").
+TABLE3_UNITS = ("m/s", "deg", "deg", "m", "deg", "deg")
+TABLE3 = {
+    (20, "small"): {"V": (0.029, 0.024), "gamma": (9.74e-3, 3.66e-3), "psi": (1.68e-2, 6.59e-4),
+                    "r": (0.575, 0.535), "theta": (6.07e-6, 6.02e-6), "phi": (5.42e-6, 4.84e-6)},
+    (20, "large"): {"V": (0.074, 0.045), "gamma": (3.84e-2, 4.30e-3), "psi": (5.55e-3, 1.08e-3),
+                    "r": (0.999, 0.691), "theta": (6.65e-6, 6.07e-6), "phi": (9.45e-6, 4.90e-6)},
+    (10, "small"): {"V": (0.643, 0.142), "gamma": (1.42e-2, 5.68e-3), "psi": (2.71e-3, 6.76e-4),
+                    "r": (18.900, 0.990), "theta": (1.15e-4, 9.00e-6), "phi": (3.85e-4, 1.63e-5)},
+    (10, "large"): {"V": (0.711, 0.166), "gamma": (5.09e-2, 7.91e-3), "psi": (8.19e-3, 1.43e-3),
+                    "r": (19.900, 1.24), "theta": (1.19e-4, 9.22e-6), "phi": (3.95e-4, 1.62e-5)},
+}
+#: Section 4: processing time per step, MATLAB 6.5 on an Athlon XP 2500+ (ms).
+PAPER_MS_PER_STEP = {"ekf": 2.32, "ukf": 9.22}
+
 #: Guidance and stage-2 flow solved by ``symkf.scenarios.launcher_guidance`` (IPOPT) to meet
 #: Table 2 and the insertion conditions. Regenerate with ``symkf design-guidance``.
 GUIDANCE = {

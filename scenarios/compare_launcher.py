@@ -1,0 +1,210 @@
+"""symkf compare launcher — paper 004's EKF-vs-UKF Monte Carlo (Table 3, Figs 5-6) with ours beside.
+
+4 cases (20 Hz and 10 Hz radar x small eq (9) and large eq (10) initial error), N runs each,
+both filters fed the same radar draws, the whole run of each filter in one compiled C call.
+Writes to --out: rms_table.csv, rms_table.md, fig_velocity_rms.png, fig_radius_rms.png,
+fig_nees.png, summary.json. Tuning and truth: scenarios/launcher_campaign.py, launcher_truth.py.
+"""
+from __future__ import annotations
+
+import csv
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..models import launcher as L
+from .launcher_campaign import FILTERS, STATE_NAMES, TUNING, Campaign, CaseResult, consistency
+
+UNITS = dict(zip(STATE_NAMES, L.TABLE3_UNITS))
+EVENT_LINES = ((L.T_STAGE1_BURNOUT, "staging"), (L.T_STAGE2_IGNITION, "2nd ignition"),
+               (L.RADAR_HANDOVER_TIMES[0], "hand-over"), (L.RADAR_HANDOVER_TIMES[1], "hand-over"))
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("--runs", type=int, default=100, help="Monte Carlo runs per case (default 100)")
+    parser.add_argument("--seed", type=int, default=2005, help="random seed (default 2005)")
+    parser.add_argument("--rates", default="20,10", help="radar rates in Hz, comma-separated (default 20,10)")
+    parser.add_argument("--out", default="results/launcher", help="output folder (default results/launcher)")
+    parser.add_argument("--duration", type=float, default=L.T_INSERTION,
+                        help=f"seconds of flight to filter (default {L.T_INSERTION}, the whole flight)")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar, no table")
+
+
+def run(args) -> int:
+    rates = tuple(int(r) for r in str(args.rates).split(",") if r.strip())
+    bad = [r for r in rates if r not in L.RADAR_RATES_HZ]
+    if bad or args.runs < 1 or not 0 < args.duration <= L.T_INSERTION:
+        print(f"symkf compare launcher: rates must be among {L.RADAR_RATES_HZ}, runs >= 1 and "
+              f"0 < duration <= {L.T_INSERTION}", file=sys.stderr)
+        return 2
+    progress = None if args.quiet else ProgressBar()
+    start = time.perf_counter()
+    campaign = Campaign(args.runs, args.seed, rates, args.duration, progress=progress)
+    results = campaign.run()
+    wall = time.perf_counter() - start
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    rows = table_rows(results)
+    write_csv(out / "rms_table.csv", rows)
+    (out / "rms_table.md").write_text(markdown_table(results, rows))
+    summary = make_summary(results, args, wall)
+    (out / "summary.json").write_text(json.dumps(summary, indent=1))
+    plot_rms(results, 0, "V", "Speed error RMS (m/s)", out / "fig_velocity_rms.png")
+    plot_rms(results, 3, "r", "Radius error RMS (m)", out / "fig_radius_rms.png")
+    plot_nees(results, out / "fig_nees.png")
+    if not args.quiet:
+        print("\n" + markdown_table(results, rows))
+        for claim, value in summary["claims"].items():
+            if isinstance(value, bool):
+                print(f"  {claim}: {value}")
+        print(f"  ukf_le_ekf_every_state: {summary['claims']['ukf_le_ekf_every_state']}")
+        print(f"wrote {out}/ in {wall:.1f} s")
+    return 0
+
+
+class ProgressBar:
+    """A one-line progress bar on stderr."""
+
+    def __init__(self, width: int = 40):
+        self.width, self.start = width, time.perf_counter()
+
+    def __call__(self, done: int, total: int) -> None:
+        filled = int(self.width * done / total)
+        elapsed = time.perf_counter() - self.start
+        sys.stderr.write(f"\r[{'#' * filled}{'.' * (self.width - filled)}] {done}/{total} runs, {elapsed:.1f} s")
+        if done == total:
+            sys.stderr.write("\n")
+        sys.stderr.flush()
+
+
+# ---------------------------------------------------------------------- tables
+def table_rows(results: list[CaseResult]) -> list[dict]:
+    rows = []
+    for result in results:
+        key = (result.case.rate_hz, result.case.initial_error)
+        ours = {family: result.whole_flight(family) for family in FILTERS}
+        for i, state in enumerate(STATE_NAMES):
+            paper_ekf, paper_ukf = L.TABLE3[key][state]
+            rows.append({"state": state, "unit": UNITS[state], "case": result.case.label,
+                         "ekf": float(ours["ekf"][i]), "ukf": float(ours["ukf"][i]),
+                         "paper_ekf": paper_ekf, "paper_ukf": paper_ukf})
+    return rows
+
+
+def write_csv(path: Path, rows: list[dict]) -> None:
+    with open(path, "w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+
+
+def markdown_table(results: list[CaseResult], rows: list[dict]) -> str:
+    """Table 3's layout: states as rows, case x filter as columns, 'ours (paper)' in each cell."""
+    cases = [r.case.label for r in results]
+    head = "| State | " + " | ".join(f"{c} EKF | {c} UKF" for c in cases) + " |"
+    rule = "|---" * (1 + 2 * len(cases)) + "|"
+    lines = ["Whole-flight RMS error, eq (11): ours (paper Table 3)", "", head, rule]
+    for state in STATE_NAMES:
+        cells = []
+        for case in cases:
+            row = next(r for r in rows if r["state"] == state and r["case"] == case)
+            cells += [f"{row['ekf']:.3g} ({row['paper_ekf']:.3g})", f"{row['ukf']:.3g} ({row['paper_ukf']:.3g})"]
+        lines.append(f"| {state} ({UNITS[state]}) | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+# ---------------------------------------------------------------------- summary and claims
+def make_summary(results: list[CaseResult], args, wall: float) -> dict:
+    cases = {}
+    for result in results:
+        entry = {}
+        for family in FILTERS:
+            entry[family] = {
+                "rms_eq11": dict(zip(STATE_NAMES, result.whole_flight(family).tolist())),
+                **consistency(result, family),
+                "wall_s": result.wall_s[family],
+                "steps": int(len(result.times) * result.errors[family].runs),
+                "us_per_step_in_run": 1e6 * result.wall_s[family] / (len(result.times) * result.errors[family].runs),
+                "failed_steps": result.failed_steps[family],
+            }
+        cases[result.case.label] = entry
+    return {"runs": args.runs, "seed": args.seed, "duration_s": args.duration, "wall_s": wall,
+            "units": UNITS, "tuning": {k: np.asarray(v).tolist() for k, v in TUNING.items()},
+            "cases": cases, "claims": claims(results)}
+
+
+def claims(results: list[CaseResult]) -> dict:
+    """The paper's qualitative claims, checked state by state on eq (11)."""
+    by_label = {r.case.label: r for r in results}
+    ratio = {label: r.whole_flight("ekf") / np.maximum(r.whole_flight("ukf"), 1e-300) for label, r in by_label.items()}
+    ukf_better = {label: bool(np.all(r.whole_flight("ukf") <= r.whole_flight("ekf"))) for label, r in by_label.items()}
+    out = {"ukf_le_ekf_every_state": ukf_better,
+           "ekf_over_ukf_ratio": {label: dict(zip(STATE_NAMES, np.round(v, 3).tolist())) for label, v in ratio.items()}}
+    for rate in {r.case.rate_hz for r in results}:
+        small, large = by_label.get(f"{rate}Hz small"), by_label.get(f"{rate}Hz large")
+        if small and large:
+            out[f"gap_larger_for_large_error_{rate}Hz"] = bool(
+                np.median(ratio[large.case.label]) > np.median(ratio[small.case.label]))
+    for init in ("small", "large"):
+        fast, slow = by_label.get(f"20Hz {init}"), by_label.get(f"10Hz {init}")
+        if fast and slow:
+            out[f"gap_larger_at_10Hz_{init}"] = bool(np.median(ratio[slow.case.label]) > np.median(ratio[fast.case.label]))
+    return out
+
+
+# ---------------------------------------------------------------------- figures
+def _panels(results: list[CaseResult]):
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    rates = sorted({r.case.rate_hz for r in results}, reverse=True)
+    fig, axes = plt.subplots(len(rates), 2, figsize=(11, 3.8 * len(rates)), squeeze=False, sharex=True)
+    placed = {}
+    for result in results:
+        row = rates.index(result.case.rate_hz)
+        col = 0 if result.case.initial_error == "small" else 1
+        placed[result.case.label] = axes[row, col]
+    return plt, fig, axes, placed
+
+
+def _mark_events(ax, duration: float) -> None:
+    for t, label in EVENT_LINES:
+        if t <= duration:
+            ax.axvline(t, color="0.6", lw=0.8, ls=":" if label == "hand-over" else "-")
+
+
+def plot_rms(results: list[CaseResult], index: int, state: str, ylabel: str, path: Path) -> None:
+    plt, fig, axes, placed = _panels(results)
+    for result in results:
+        ax = placed[result.case.label]
+        for family, style in (("ekf", "--"), ("ukf", "-")):
+            ax.semilogy(result.times, result.rms_in_table_units(family)[:, index], style, lw=1, label=family.upper())
+        _mark_events(ax, result.times[-1])
+        ax.set_title(f"{result.case.label} initial error ({result.errors['ekf'].runs} runs)")
+        ax.set_ylabel(ylabel)
+        ax.legend(loc="upper right")
+    for ax in axes[-1]:
+        ax.set_xlabel("time (s)   | staging / 2nd ignition,  : radar hand-over")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def plot_nees(results: list[CaseResult], path: Path) -> None:
+    plt, fig, axes, placed = _panels(results)
+    for result in results:
+        ax = placed[result.case.label]
+        stride = result.errors["ekf"].nees_stride
+        for family, style in (("ekf", "--"), ("ukf", "-")):
+            ax.semilogy(result.times[::stride], result.errors[family].mean_nees(), style, lw=1, label=family.upper())
+        low, high = consistency(result, "ekf")["nees_band_95"]
+        ax.axhspan(low, high, color="tab:green", alpha=0.2, label="95 % band")
+        _mark_events(ax, result.times[-1])
+        ax.set_title(f"{result.case.label}: average NEES (6 states)")
+        ax.legend(loc="upper right")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
