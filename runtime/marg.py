@@ -356,11 +356,23 @@ def to_enu(q_nwu: np.ndarray) -> np.ndarray:
     return np.asarray(_mapped("hamilton", q_nwu.shape[0])(rot, q_nwu.T)).T
 
 
+def from_enu(q_enu: np.ndarray) -> np.ndarray:
+    """The inverse of :func:`to_enu` (e.g. the optical reference in the filter's frame); NaN rows stay NaN."""
+    q_enu = np.atleast_2d(q_enu)
+    rot = np.repeat(quat_conjugate(NWU_TO_ENU)[:, None], q_enu.shape[0], axis=1)
+    return np.asarray(_mapped("hamilton", q_enu.shape[0])(rot, q_enu.T)).T
+
+
+def quat_conjugate(q: np.ndarray) -> np.ndarray:
+    """Conjugate of scalar-last quaternion(s)."""
+    return q * np.array([-1.0, -1.0, -1.0, 1.0])
+
+
 def broad_error_angles(q_est_enu: np.ndarray, q_ref_enu: np.ndarray) -> np.ndarray:
     """(N, 3) total, heading, inclination error angles (rad) of BROAD's metric (NaN where no reference)."""
     est = q_est_enu / np.linalg.norm(q_est_enu, axis=1, keepdims=True)
     ref = q_ref_enu / np.linalg.norm(q_ref_enu, axis=1, keepdims=True)
-    ref_inv = ref * np.array([-1.0, -1.0, -1.0, 1.0])
+    ref_inv = quat_conjugate(ref)
     err = np.asarray(_mapped("hamilton", est.shape[0])(est.T, ref_inv.T)).T     # q_est ⊗ q_ref⁻¹
     w, z = np.abs(err[:, 3]), np.abs(err[:, 2])
     total = 2 * np.arccos(np.clip(w, 0, 1))
@@ -381,5 +393,5 @@ def broad_errors(q_est_nwu: np.ndarray, recording: Recording) -> dict[str, float
 
 
 __all__ = ["MargFilter", "MargRun", "Recording", "broad_error_angles", "broad_errors", "data_dir", "euler_angles",
-           "load_broad", "load_recording", "load_xio_csv", "reference_initial", "reference_run",
+           "from_enu", "load_broad", "load_recording", "load_xio_csv", "reference_initial", "reference_run",
            "reference_step", "to_enu"]
