@@ -44,6 +44,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--mode", choices=("marg", "imu"), default="marg", help="9-axis or 6-axis")
     parser.add_argument("--alpha", type=float, default=ALPHA_DEFAULT, help="eq (28), full form only")
     parser.add_argument("--hf-cutoff", type=float, default=5.0, help="Hz, for the oscillation measure")
+    parser.add_argument("--zoom", type=float, nargs=2, default=(0.0, 20.0), metavar=("T0", "T1"),
+                        help="time window (s) of the zoomed Euler-angle figure")
     parser.add_argument("--no-plots", action="store_true")
 
 
@@ -72,16 +74,31 @@ def _fill_gaps(series: np.ndarray) -> np.ndarray:
     return out
 
 
-def oscillation(angles: np.ndarray, rate_hz: float, cutoff_hz: float) -> dict[str, list[float]]:
-    """High-frequency RMS above ``cutoff_hz`` and first-difference RMS of Euler angles (N, 3) rad, deg."""
+def oscillation(angles: np.ndarray, rate_hz: float, cutoff_hz: float,
+                still: np.ndarray | None = None) -> dict[str, list[float]]:
+    """High-frequency RMS above ``cutoff_hz`` and first-difference RMS of Euler angles (N, 3) rad, deg.
+
+    With ``still`` (a per-sample flag of rest phases, e.g. BROAD's ``movement == 0``), also the
+    first-difference RMS over consecutive still samples only: there the sensor does not move, so
+    all of it is estimator oscillation.
+    """
     deg = _unwrapped_degrees(_fill_gaps(angles))
     n = deg.shape[0]
     trend = np.linspace(0, 1, n)[:, None] * (deg[-1] - deg[0]) + deg[0]   # no step at the FFT wrap-around
     spectrum = np.fft.rfft(deg - trend, axis=0)
     spectrum[np.fft.rfftfreq(n, 1 / rate_hz) < cutoff_hz] = 0
     high = np.fft.irfft(spectrum, n=n, axis=0)
-    return {"hf_rms_deg": np.sqrt(np.mean(high**2, axis=0)).tolist(),
-            "diff_rms_deg": np.sqrt(np.mean(np.diff(deg, axis=0) ** 2, axis=0)).tolist()}
+    diff = np.diff(deg, axis=0)
+    result = {"hf_rms_deg": np.sqrt(np.mean(high**2, axis=0)).tolist(),
+              "diff_rms_deg": np.sqrt(np.mean(diff**2, axis=0)).tolist()}
+    if still is not None:
+        both = still[1:] & still[:-1]
+        result["still_diff_rms_deg"] = np.sqrt(np.mean(diff[both] ** 2, axis=0)).tolist()
+    return result
+
+
+def _still(recording: Recording) -> np.ndarray | None:
+    return None if recording.movement is None else ~recording.movement
 
 
 # ---------------------------------------------------------------------- one beta
@@ -91,7 +108,7 @@ def run_beta(compiled, recording: Recording, beta: float, args) -> tuple[dict, n
     angles = euler_angles(result.q)
     rate = 1 / np.median(recording.dt[1:])
     entry = {"beta": beta, "failed_steps": int(result.failed_steps.size),
-             "oscillation": oscillation(angles, rate, args.hf_cutoff)}
+             "oscillation": oscillation(angles, rate, args.hf_cutoff, _still(recording))}
     if recording.reference is not None:
         entry["broad_rmse_deg"] = broad_errors(result.q, recording)
     return entry, angles
@@ -110,24 +127,27 @@ def sweep(compiled, recording: Recording, args) -> dict:
 
 # ---------------------------------------------------------------------- figures
 def plot_euler(recording: Recording, per_beta: list[tuple[float, np.ndarray]], reference: np.ndarray | None,
-               path: Path) -> None:
+               path: Path, window: tuple[float, float] | None = None) -> None:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     fig, axes = plt.subplots(3, len(per_beta), figsize=(5.5 * len(per_beta), 7), sharex=True, squeeze=False)
     t = recording.time - recording.time[0]
+    shown = slice(None) if window is None else (t >= window[0]) & (t <= window[1])
+    t = t[shown]
     for col, (beta, angles) in enumerate(per_beta):
         for row in range(3):
             ax = axes[row, col]
             if reference is not None:
-                ax.plot(t, np.degrees(reference[:, row]), color="0.6", lw=0.8, label="optical reference")
-            ax.plot(t, np.degrees(angles[:, row]), lw=0.6, label=f"estimate, beta = {beta:g}")
+                ax.plot(t, np.degrees(reference[shown, row]), color="0.6", lw=0.8, label="optical reference")
+            ax.plot(t, np.degrees(angles[shown, row]), lw=0.6, label=f"estimate, beta = {beta:g}")
             ax.set_ylabel(f"{ANGLE_NAMES[row]} [deg]")
             if row == 0:
                 ax.set_title(f"beta = {beta:g} rad/s")
                 ax.legend(loc="upper right", fontsize=7)
         axes[2, col].set_xlabel("time [s]")
-    fig.suptitle(f"Euler angles (5), {recording.name} (cf. paper 001 Fig 3)")
+    span = "" if window is None else f", {window[0]:g}-{window[1]:g} s"
+    fig.suptitle(f"Euler angles (5), {recording.name}{span} (cf. paper 001 Fig 3)")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -178,7 +198,7 @@ def run(args) -> int:
     if recording.reference is not None:
         reference_angles = euler_angles(from_enu(recording.reference))
         reference_angles[~np.isfinite(recording.reference).all(axis=1)] = np.nan   # markers lost
-        summary["reference_oscillation"] = oscillation(reference_angles, rate, args.hf_cutoff)
+        summary["reference_oscillation"] = oscillation(reference_angles, rate, args.hf_cutoff, _still(recording))
     if args.sweep:
         summary["sweep"] = sweep(compiled, recording, args)
     figures = []
@@ -186,6 +206,9 @@ def run(args) -> int:
         path = args.out / f"euler_{recording.name}_{args.form}_{args.mode}.png"
         plot_euler(recording, per_beta, reference_angles, path)
         figures.append(str(path))
+        zoom = args.out / f"euler_zoom_{recording.name}_{args.form}_{args.mode}.png"
+        plot_euler(recording, per_beta, reference_angles, zoom, window=tuple(args.zoom))
+        figures.append(str(zoom))
         if args.sweep:
             path = args.out / f"sweep_{recording.name}_{args.form}_{args.mode}.png"
             plot_sweep(summary["sweep"], path, recording.name)
@@ -200,18 +223,20 @@ def _print_table(summary: dict) -> None:
     print(f"{summary['recording']}  ({summary['samples']} samples, {summary['rate_hz']:.1f} Hz, "
           f"form {summary['form']}, mode {summary['mode']})")
     print(f"{'beta':>8} {'total':>7} {'heading':>8} {'incl':>6} | HF RMS > {summary['hf_cutoff_hz']:g} Hz "
-          "psi/theta/phi [deg] | diff RMS [deg/sample]")
+          "psi/theta/phi [deg] | diff RMS [deg/sample] | still diff RMS")
     rows = [(e["beta"], e) for e in summary["per_beta"]]
     for beta, e in rows:
         rmse = e.get("broad_rmse_deg")
         acc = f"{rmse['total']:7.2f} {rmse['heading']:8.2f} {rmse['inclination']:6.2f}" if rmse else f"{'-':>7} {'-':>8} {'-':>6}"
         hf = "/".join(f"{v:.4f}" for v in e["oscillation"]["hf_rms_deg"])
         df = "/".join(f"{v:.4f}" for v in e["oscillation"]["diff_rms_deg"])
-        print(f"{beta:8g} {acc} | {hf} | {df}")
+        still = "/".join(f"{v:.5f}" for v in e["oscillation"].get("still_diff_rms_deg", []))
+        print(f"{beta:8g} {acc} | {hf} | {df} | {still}")
     if "reference_oscillation" in summary:
         ref = summary["reference_oscillation"]
         print(f"{'optical reference':>32} | " + "/".join(f"{v:.4f}" for v in ref["hf_rms_deg"]) + " | "
-              + "/".join(f"{v:.4f}" for v in ref["diff_rms_deg"]))
+              + "/".join(f"{v:.4f}" for v in ref["diff_rms_deg"]) + " | "
+              + "/".join(f"{v:.5f}" for v in ref.get("still_diff_rms_deg", [])))
     if "sweep" in summary and "best_beta" in summary["sweep"]:
         best = summary["sweep"]["best_rmse_deg"]
         print(f"sweep: best beta = {summary['sweep']['best_beta']:g} rad/s, total RMSE {best['total']:.2f} deg "
