@@ -190,7 +190,8 @@ def run(args) -> int:
         per_beta.append((beta, angles))
     rate = 1 / np.median(recording.dt[1:])
     summary = {"recording": str(args.data), "source": recording.source, "samples": len(recording),
-               "rate_hz": rate, "form": args.form, "mode": args.mode, "alpha": args.alpha if args.form == "full" else None,
+               "rate_hz": rate, "form": args.form, "mode": args.mode,
+               "alpha": args.alpha if args.form == "full" else None,
                "hf_cutoff_hz": args.hf_cutoff, "per_beta": entries,
                "euler_convention": "eq (5) applied to q* (sensor yaw psi, pitch theta, roll phi; Z-Y-X), "
                                    "earth frame north-west-up"}
@@ -227,7 +228,8 @@ def _print_table(summary: dict) -> None:
     rows = [(e["beta"], e) for e in summary["per_beta"]]
     for beta, e in rows:
         rmse = e.get("broad_rmse_deg")
-        acc = f"{rmse['total']:7.2f} {rmse['heading']:8.2f} {rmse['inclination']:6.2f}" if rmse else f"{'-':>7} {'-':>8} {'-':>6}"
+        acc = (f"{rmse['total']:7.2f} {rmse['heading']:8.2f} {rmse['inclination']:6.2f}" if rmse
+               else f"{'-':>7} {'-':>8} {'-':>6}")
         hf = "/".join(f"{v:.4f}" for v in e["oscillation"]["hf_rms_deg"])
         df = "/".join(f"{v:.4f}" for v in e["oscillation"]["diff_rms_deg"])
         still = "/".join(f"{v:.5f}" for v in e["oscillation"].get("still_diff_rms_deg", []))

@@ -119,7 +119,8 @@ def test_derived_gradients_match_closed_forms(trial):
     f_b = evaluate(paper.objective_earth_field, q, b, m)
     grad_g = jacobian_gravity_closed_form(q1, q2, q3, q4).T @ f_g
     grad_b = jacobian_earth_field_closed_form(q1, q2, q3, q4, b[0], b[2]).T @ f_b
-    np.testing.assert_allclose(to_first(np.asarray(fns["gradient_gravity"](q, a)).ravel()), grad_g, rtol=1e-13, atol=1e-13)
+    np.testing.assert_allclose(to_first(np.asarray(fns["gradient_gravity"](q, a)).ravel()), grad_g,
+                               rtol=1e-13, atol=1e-13)
     np.testing.assert_allclose(to_first(np.asarray(fns["gradient_earth_field"](q, b, m)).ravel()), grad_b,
                                rtol=1e-13, atol=1e-13)
     np.testing.assert_allclose(to_first(np.asarray(fns["gradient_stacked"](q, a, b, m)).ravel()),

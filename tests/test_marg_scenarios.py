@@ -15,7 +15,8 @@ BROAD_TRIAL = data_dir() / "broad" / "01_undisturbed_slow_rotation_A.mat"
 XIO_CSV = data_dir() / "fusion_sensor_data.csv"
 
 
-@pytest.mark.skipif(not BROAD_TRIAL.exists(), reason=f"BROAD recording {BROAD_TRIAL} is absent (../shared/data not provided)")
+@pytest.mark.skipif(not BROAD_TRIAL.exists(),
+                    reason=f"BROAD recording {BROAD_TRIAL} is absent (../shared/data not provided)")
 def test_compare_on_broad_writes_summary_and_shows_oscillation_growing_with_beta(tmp_path):
     assert cli.main(["compare", "marg", "--data", str(BROAD_TRIAL), "--beta", "0.01,0.5",
                      "--out", str(tmp_path), "--no-plots"]) == 0
