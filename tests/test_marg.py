@@ -260,3 +260,14 @@ def test_bad_input_raises_and_keeps_state(compiled):
                    np.tile([0, 0, 1.0], (4, 1)), np.tile([1.0, 0, 0], (4, 1)))
     assert run.status.tolist() == [0, 0, 4, 0]
     np.testing.assert_array_equal(run.q[2], run.q[1])
+
+
+def test_casadi_vm_backend_gives_the_same_numbers(compiled):
+    dt, gyro, acc, mag, _ = synthetic(n=200)
+    vm = load("marg", backend="casadi-vm")
+    assert vm.backend.kind == "casadi-vm"
+    for form in ("simple", "full"):
+        a = MargFilter(compiled, form, "marg", beta=0.3)
+        b = MargFilter(vm, form, "marg", beta=0.3)
+        np.testing.assert_allclose(a.initialize(acc[0], mag[0]), b.initialize(acc[0], mag[0]), atol=1e-15)
+        np.testing.assert_allclose(a.run(dt, gyro, acc, mag).q, b.run(dt, gyro, acc, mag).q, atol=1e-14, rtol=0)
