@@ -368,12 +368,25 @@ def quat_conjugate(q: np.ndarray) -> np.ndarray:
     return q * np.array([-1.0, -1.0, -1.0, 1.0])
 
 
-def broad_error_angles(q_est_enu: np.ndarray, q_ref_enu: np.ndarray) -> np.ndarray:
-    """(N, 3) total, heading, inclination error angles (rad) of BROAD's metric (NaN where no reference)."""
+def error_quaternions(q_est_enu: np.ndarray, q_ref_enu: np.ndarray) -> np.ndarray:
+    """BROAD's earth-frame error q_err = q_est ⊗ q_ref⁻¹ (both normalised), (N, 4) scalar-last."""
     est = q_est_enu / np.linalg.norm(q_est_enu, axis=1, keepdims=True)
     ref = q_ref_enu / np.linalg.norm(q_ref_enu, axis=1, keepdims=True)
-    ref_inv = quat_conjugate(ref)
-    err = np.asarray(_mapped("hamilton", est.shape[0])(est.T, ref_inv.T)).T     # q_est ⊗ q_ref⁻¹
+    return np.asarray(_mapped("hamilton", est.shape[0])(est.T, quat_conjugate(ref).T)).T
+
+
+def error_rotation_vectors(q_est_enu: np.ndarray, q_ref_enu: np.ndarray) -> np.ndarray:
+    """(N, 3) rotation vectors (rad, earth frame) of :func:`error_quaternions`, the short way round."""
+    err = error_quaternions(q_est_enu, q_ref_enu)
+    err = err * np.where(err[:, 3:] < 0, -1.0, 1.0)
+    vec_norm = np.linalg.norm(err[:, :3], axis=1, keepdims=True)
+    angle = 2 * np.arctan2(vec_norm, err[:, 3:])
+    return err[:, :3] * np.where(vec_norm > 0, angle / np.where(vec_norm > 0, vec_norm, 1), 2.0)
+
+
+def broad_error_angles(q_est_enu: np.ndarray, q_ref_enu: np.ndarray) -> np.ndarray:
+    """(N, 3) total, heading, inclination error angles (rad) of BROAD's metric (NaN where no reference)."""
+    err = error_quaternions(q_est_enu, q_ref_enu)
     w, z = np.abs(err[:, 3]), np.abs(err[:, 2])
     total = 2 * np.arccos(np.clip(w, 0, 1))
     heading = 2 * np.arctan2(z, w)
@@ -392,6 +405,7 @@ def broad_errors(q_est_nwu: np.ndarray, recording: Recording) -> dict[str, float
             "samples": int(used.sum())}
 
 
-__all__ = ["MargFilter", "MargRun", "Recording", "broad_error_angles", "broad_errors", "data_dir", "euler_angles",
+__all__ = ["MargFilter", "MargRun", "Recording", "broad_error_angles", "broad_errors", "data_dir", "error_quaternions",
+           "error_rotation_vectors", "euler_angles",
            "from_enu", "load_broad", "load_recording", "load_xio_csv", "reference_initial", "reference_run",
            "reference_step", "to_enu"]

@@ -10,7 +10,12 @@ the paper's claim that a larger β brings high-frequency oscillation:
 
 - ``hf_rms_deg``: RMS of the Euler angles' content above ``--hf-cutoff`` Hz (default 5 Hz; body
   motion in these recordings is well below it), from the FFT of the unwrapped, detrended angles;
-- ``diff_rms_deg``: RMS of the first difference of the unwrapped Euler angles (deg per sample).
+- ``diff_rms_deg``: RMS of the first difference of the unwrapped Euler angles (deg per sample);
+- ``still_diff_rms_deg`` (BROAD): the same over rest phases (``movement == 0``) only, where the
+  sensor does not move and every change is estimator oscillation;
+- ``error_hf_rms_deg`` (BROAD): RMS above the cutoff of the error rotation vector
+  (``q_est ⊗ q_ref⁻¹``, earth frame; the norm over its three components), i.e. the
+  oscillation of the estimate about the optical reference, motion removed.
 
 Both are also given for the optical reference (NaN gaps linearly interpolated) as the floor of
 real motion. ``--sweep`` adds RMSE and oscillation vs β on a log grid and marks the β of least
@@ -26,7 +31,8 @@ import numpy as np
 
 from ..models.marg import ALPHA_DEFAULT
 from ..runtime import load
-from ..runtime.marg import MargFilter, Recording, broad_errors, data_dir, euler_angles, from_enu, load_recording
+from ..runtime.marg import (MargFilter, Recording, broad_errors, data_dir, error_rotation_vectors, euler_angles,
+                            from_enu, load_recording, to_enu)
 
 DEFAULT_DATA = data_dir() / "broad" / "01_undisturbed_slow_rotation_A.mat"
 SWEEP_BETAS = np.round(np.logspace(-3, 0, 19), 5)
@@ -74,6 +80,16 @@ def _fill_gaps(series: np.ndarray) -> np.ndarray:
     return out
 
 
+def high_frequency_rms(series: np.ndarray, rate_hz: float, cutoff_hz: float) -> np.ndarray:
+    """Per column, the RMS of the content above ``cutoff_hz`` (NaN gaps interpolated, linear trend removed)."""
+    filled = _fill_gaps(series)
+    n = filled.shape[0]
+    trend = np.linspace(0, 1, n)[:, None] * (filled[-1] - filled[0]) + filled[0]   # no step at the wrap-around
+    spectrum = np.fft.rfft(filled - trend, axis=0)
+    spectrum[np.fft.rfftfreq(n, 1 / rate_hz) < cutoff_hz] = 0
+    return np.sqrt(np.mean(np.fft.irfft(spectrum, n=n, axis=0) ** 2, axis=0))
+
+
 def oscillation(angles: np.ndarray, rate_hz: float, cutoff_hz: float,
                 still: np.ndarray | None = None) -> dict[str, list[float]]:
     """High-frequency RMS above ``cutoff_hz`` and first-difference RMS of Euler angles (N, 3) rad, deg.
@@ -83,13 +99,8 @@ def oscillation(angles: np.ndarray, rate_hz: float, cutoff_hz: float,
     all of it is estimator oscillation.
     """
     deg = _unwrapped_degrees(_fill_gaps(angles))
-    n = deg.shape[0]
-    trend = np.linspace(0, 1, n)[:, None] * (deg[-1] - deg[0]) + deg[0]   # no step at the FFT wrap-around
-    spectrum = np.fft.rfft(deg - trend, axis=0)
-    spectrum[np.fft.rfftfreq(n, 1 / rate_hz) < cutoff_hz] = 0
-    high = np.fft.irfft(spectrum, n=n, axis=0)
     diff = np.diff(deg, axis=0)
-    result = {"hf_rms_deg": np.sqrt(np.mean(high**2, axis=0)).tolist(),
+    result = {"hf_rms_deg": high_frequency_rms(deg, rate_hz, cutoff_hz).tolist(),
               "diff_rms_deg": np.sqrt(np.mean(diff**2, axis=0)).tolist()}
     if still is not None:
         both = still[1:] & still[:-1]
@@ -111,6 +122,8 @@ def run_beta(compiled, recording: Recording, beta: float, args) -> tuple[dict, n
              "oscillation": oscillation(angles, rate, args.hf_cutoff, _still(recording))}
     if recording.reference is not None:
         entry["broad_rmse_deg"] = broad_errors(result.q, recording)
+        error = np.degrees(error_rotation_vectors(to_enu(result.q), recording.reference))
+        entry["oscillation"]["error_hf_rms_deg"] = float(np.linalg.norm(high_frequency_rms(error, rate, args.hf_cutoff)))
     return entry, angles
 
 
@@ -224,7 +237,7 @@ def _print_table(summary: dict) -> None:
     print(f"{summary['recording']}  ({summary['samples']} samples, {summary['rate_hz']:.1f} Hz, "
           f"form {summary['form']}, mode {summary['mode']})")
     print(f"{'beta':>8} {'total':>7} {'heading':>8} {'incl':>6} | HF RMS > {summary['hf_cutoff_hz']:g} Hz "
-          "psi/theta/phi [deg] | diff RMS [deg/sample] | still diff RMS")
+          "psi/theta/phi [deg] | diff RMS [deg/sample] | still diff RMS | error HF")
     rows = [(e["beta"], e) for e in summary["per_beta"]]
     for beta, e in rows:
         rmse = e.get("broad_rmse_deg")
@@ -233,7 +246,8 @@ def _print_table(summary: dict) -> None:
         hf = "/".join(f"{v:.4f}" for v in e["oscillation"]["hf_rms_deg"])
         df = "/".join(f"{v:.4f}" for v in e["oscillation"]["diff_rms_deg"])
         still = "/".join(f"{v:.5f}" for v in e["oscillation"].get("still_diff_rms_deg", []))
-        print(f"{beta:8g} {acc} | {hf} | {df} | {still}")
+        err_hf = e["oscillation"].get("error_hf_rms_deg")
+        print(f"{beta:8g} {acc} | {hf} | {df} | {still} | " + ("" if err_hf is None else f"{err_hf:.4f}"))
     if "reference_oscillation" in summary:
         ref = summary["reference_oscillation"]
         print(f"{'optical reference':>32} | " + "/".join(f"{v:.4f}" for v in ref["hf_rms_deg"]) + " | "

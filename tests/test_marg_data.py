@@ -8,8 +8,8 @@ from scipy.io import loadmat
 from scipy.spatial.transform import Rotation
 
 from symkf.runtime import load
-from symkf.runtime.marg import (MargFilter, broad_error_angles, broad_errors, data_dir, load_recording,
-                                reference_initial, reference_run, to_enu)
+from symkf.runtime.marg import (MargFilter, broad_error_angles, broad_errors, data_dir, error_rotation_vectors,
+                                load_recording, reference_initial, reference_run, to_enu)
 
 BROAD_TRIAL = data_dir() / "broad" / "01_undisturbed_slow_rotation_A.mat"
 XIO_CSV = data_dir() / "fusion_sensor_data.csv"
@@ -75,6 +75,8 @@ def test_broad_metric_definitions():
     np.testing.assert_allclose(angles, np.tile([10, 10, 0], (50, 1)), atol=1e-5)
     tilt_only = (Rotation.from_euler("x", 7, degrees=True) * Rotation.from_quat(ref)).as_quat()
     np.testing.assert_allclose(np.degrees(broad_error_angles(tilt_only, ref)), np.tile([7, 0, 7], (50, 1)), atol=1e-5)
+    np.testing.assert_allclose(np.degrees(error_rotation_vectors(-tilt_only, ref)), np.tile([7, 0, 0], (50, 1)),
+                               atol=1e-9)
     # sign of the quaternion does not matter
     np.testing.assert_allclose(broad_error_angles(-ref, ref), 0, atol=1e-7)
     # the NWU -> ENU alignment: a sensor facing magnetic north in NWU faces +y (north) in ENU

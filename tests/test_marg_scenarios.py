@@ -34,6 +34,7 @@ def test_compare_on_broad_writes_summary_and_shows_oscillation_growing_with_beta
     still_low = np.array(low["oscillation"]["still_diff_rms_deg"])
     still_high = np.array(high["oscillation"]["still_diff_rms_deg"])
     assert np.all(still_high > 10 * still_low)
+    assert high["oscillation"]["error_hf_rms_deg"] > 1.5 * low["oscillation"]["error_hf_rms_deg"]
 
 
 @pytest.mark.skipif(not XIO_CSV.exists(), reason=f"x-io recording {XIO_CSV} is absent (../shared/data not provided)")
