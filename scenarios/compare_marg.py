@@ -180,11 +180,17 @@ def plot_sweep(result: dict, path: Path, name: str) -> None:
         ax1.legend()
     ax1.set_xlabel("beta [rad/s]")
     ax1.set_title(name)
-    hf = np.array([r["oscillation"]["hf_rms_deg"] for r in result["rows"]])
-    for j in range(3):
-        ax2.loglog(betas, hf[:, j], marker=".", label=ANGLE_NAMES[j])
+    osc = [r["oscillation"] for r in result["rows"]]
+    if "error_hf_rms_deg" in osc[0]:        # motion removed: oscillation about the reference, and at rest
+        ax2.loglog(betas, [o["error_hf_rms_deg"] for o in osc], marker=".", label="error HF RMS [deg]")
+        ax2.loglog(betas, [np.linalg.norm(o["still_diff_rms_deg"]) for o in osc], marker=".",
+                   label="still-phase diff RMS [deg/sample]")
+    else:
+        hf = np.array([o["hf_rms_deg"] for o in osc])
+        for j in range(3):
+            ax2.loglog(betas, hf[:, j], marker=".", label=f"{ANGLE_NAMES[j]} HF RMS [deg]")
+    ax2.set_title("oscillation measures")
     ax2.set_xlabel("beta [rad/s]")
-    ax2.set_ylabel("RMS above cutoff [deg]")
     ax2.legend()
     fig.tight_layout()
     fig.savefig(path, dpi=110)
@@ -228,6 +234,9 @@ def run(args) -> int:
             plot_sweep(summary["sweep"], path, recording.name)
             figures.append(str(path))
     summary["figures"] = figures
+    if args.mode == "imu":
+        summary["note"] = ("6-axis mode: the heading is unobservable (initial heading from a sensor axis), so "
+                           "BROAD total/heading errors are not meaningful; read the inclination error")
     (args.out / "summary.json").write_text(json.dumps(summary, indent=1))
     _print_table(summary)
     return 0
