@@ -271,3 +271,12 @@ def test_casadi_vm_backend_gives_the_same_numbers(compiled):
         b = MargFilter(vm, form, "marg", beta=0.3)
         np.testing.assert_allclose(a.initialize(acc[0], mag[0]), b.initialize(acc[0], mag[0]), atol=1e-15)
         np.testing.assert_allclose(a.run(dt, gyro, acc, mag).q, b.run(dt, gyro, acc, mag).q, atol=1e-14, rtol=0)
+
+
+def test_initial_orientation_six_axis_matches_gravity(compiled):
+    filt = MargFilter(compiled, "simple", "imu")
+    for _ in range(10):
+        truth = Rotation.from_quat(random_unit())
+        acc = 9.81 * truth.inv().apply([0, 0, 1.0])
+        q0 = Rotation.from_quat(filt.initialize(acc))
+        np.testing.assert_allclose(q0.inv().apply([0, 0, 1.0]), acc / 9.81, atol=1e-12)   # same inclination

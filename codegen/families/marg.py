@@ -153,6 +153,11 @@ def initial_kernel(symbols: Symbols, mode: str) -> Kernel:
 
 def kernels(model, symbols: Symbols, functions: ModelFunctions) -> list[Kernel]:
     """All gradient-descent kernels (4 step kernels, 2 initial-orientation kernels)."""
+    expected = (["qx", "qy", "qz", "qw"], 3, ["beta", "alpha"])
+    found = (model.state_names(), len(model.inputs), [v.name for v in model.params])
+    if found != expected:
+        raise ValueError(f"filter family 'marg' needs states {expected[0]}, 3 gyro inputs and params "
+                         f"{expected[2]} (as models/marg.py declares); model '{model.name}' has {found}")
     result = [step_kernel(symbols, form, mode) for form in FORMS for mode in MODES]
     return result + [initial_kernel(symbols, mode) for mode in MODES]
 
