@@ -33,7 +33,7 @@ from __future__ import annotations
 import casadi as ca
 
 from .base import Model
-from .quaternion import conjugate, from_scalar_first, hamilton, normalize, to_scalar_first
+from .quaternion import conjugate, hamilton, normalize, to_scalar_first
 
 #: Fig 3: the two gains compared in the paper.
 BETA_FIG3 = (0.01, 0.5)
@@ -203,7 +203,7 @@ def build() -> Model:
 
 
 __all__ = ["ALPHA_DEFAULT", "BETA_FIG3", "BETA_MADGWICK", "GRAVITY_REFERENCE", "build",
-           "earth_field_reference", "euler_angles", "from_scalar_first", "gyro_integration",
+           "earth_field_reference", "euler_angles", "gyro_integration",
            "initial_orientation", "objective_components", "objective_earth_field", "objective_general",
            "objective_gradient", "objective_gravity", "objective_stacked", "paper_rotation_matrix",
            "quaternion_rate", "sensor_euler_angles"]
