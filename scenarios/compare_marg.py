@@ -123,7 +123,8 @@ def run_beta(compiled, recording: Recording, beta: float, args) -> tuple[dict, n
     if recording.reference is not None:
         entry["broad_rmse_deg"] = broad_errors(result.q, recording)
         error = np.degrees(error_rotation_vectors(to_enu(result.q), recording.reference))
-        entry["oscillation"]["error_hf_rms_deg"] = float(np.linalg.norm(high_frequency_rms(error, rate, args.hf_cutoff)))
+        error_hf = high_frequency_rms(error, rate, args.hf_cutoff)
+        entry["oscillation"]["error_hf_rms_deg"] = float(np.linalg.norm(error_hf))
     return entry, angles
 
 
