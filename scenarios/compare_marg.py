@@ -200,7 +200,11 @@ def plot_sweep(result: dict, path: Path, name: str) -> None:
 
 # ---------------------------------------------------------------------- command
 def run(args) -> int:
-    recording = load_recording(args.data)
+    try:
+        recording = load_recording(args.data)
+    except (FileNotFoundError, ValueError) as exc:
+        print(f"symkf compare marg: {exc} (recordings live in ../shared/data, see its README)")
+        return 1
     compiled = load("marg")
     args.out.mkdir(parents=True, exist_ok=True)
     per_beta, entries = [], []
