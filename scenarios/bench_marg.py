@@ -1,0 +1,142 @@
+"""Timing and accuracy of the gradient-descent MARG filter (paper 001) on the BROAD trials.
+
+    symkf bench marg [--json] [--repeats 5]
+
+- Build: seconds to generate and compile the ``marg`` bundle from scratch (temporary build dir).
+- µs per sample (medians over repeats) for the simplified (31) and full (26)-(30) 9-axis forms:
+  ``step_bound`` (one bound C call, inputs already in the buffers: the floor of a per-sample
+  call from Python), ``step_api`` (``MargFilter.step``: argument checks and copies included),
+  ``run`` (``MargFilter.run``: the C run loop over a whole trial), ``numpy_reference``
+  (``reference_run``, on the first ``--reference-samples`` samples).
+- RMSE per BROAD trial (total / heading / inclination over movement phases, deg) at β = 0.041
+  (Madgwick's suggested gain) and at the best β of a log sweep (grid of ``compare_marg`` plus 0.041), for both forms.
+"""
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..codegen import build_model
+from ..models.marg import ALPHA_DEFAULT, BETA_MADGWICK
+from ..runtime import load
+from ..runtime.marg import MargFilter, broad_errors, data_dir, load_recording, reference_run
+from .compare_marg import SWEEP_BETAS
+
+FORMS = ("simple", "full")
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("--json", action="store_true", help="print the results as JSON only")
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--step-samples", type=int, default=20000, help="samples timed per step repeat")
+    parser.add_argument("--reference-samples", type=int, default=2000)
+    parser.add_argument("--out", type=Path, default=None, help="also write the JSON here")
+
+
+def _median_seconds(function, repeats: int) -> float:
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        function()
+        times.append(time.perf_counter() - start)
+    return float(np.median(times))
+
+
+def cold_build_seconds() -> float:
+    """Generate + compile into a fresh temporary build dir (the project's own build is untouched)."""
+    saved = os.environ.get("SYMKF_BUILD_DIR")
+    with tempfile.TemporaryDirectory() as tmp:
+        os.environ["SYMKF_BUILD_DIR"] = tmp
+        try:
+            return build_model("marg", force=True).seconds
+        finally:
+            if saved is None:
+                os.environ.pop("SYMKF_BUILD_DIR")
+            else:
+                os.environ["SYMKF_BUILD_DIR"] = saved
+
+
+def time_form(compiled, recording, form: str, args) -> dict:
+    n_step = min(args.step_samples, len(recording))
+    filt = MargFilter(compiled, form, "marg", beta=BETA_MADGWICK)
+    filt.initialize(recording.acc[0], recording.mag[0])
+    bound = filt._step                     # the raw bound kernel call (buffers already filled)
+    dt, gyro, acc, mag = recording.dt, recording.gyro, recording.acc, recording.mag
+
+    def raw_steps():
+        for _ in range(n_step):
+            bound()
+
+    def api_steps():
+        for k in range(n_step):
+            filt.step(dt[k], gyro[k], acc[k], mag[k])
+
+    def whole_run():
+        filt.run(dt, gyro, acc, mag)
+
+    m = min(args.reference_samples, len(recording))
+    q0 = filt.initialize(recording.acc[0], recording.mag[0]).copy()
+
+    def reference():
+        reference_run(form, "marg", q0, dt[:m], gyro[:m], acc[:m], mag[:m], BETA_MADGWICK, ALPHA_DEFAULT)
+
+    return {
+        "step_bound_us": _median_seconds(raw_steps, args.repeats) / n_step * 1e6,
+        "step_api_us": _median_seconds(api_steps, args.repeats) / n_step * 1e6,
+        "run_us": _median_seconds(whole_run, args.repeats) / len(recording) * 1e6,
+        "numpy_reference_us": _median_seconds(reference, max(1, args.repeats // 2)) / m * 1e6,
+    }
+
+
+def accuracy(compiled, recording, form: str) -> dict:
+    rows = {}
+    for beta in [BETA_MADGWICK] + SWEEP_BETAS.tolist():
+        run = MargFilter(compiled, form, "marg", beta=beta).run_recording(recording)
+        rows[float(beta)] = broad_errors(run.q, recording)
+    best = min(rows, key=lambda b: rows[b]["total"])          # over the sweep grid and 0.041
+    return {"beta_0.041": rows[BETA_MADGWICK], "best_beta": float(best), "best": rows[float(best)]}
+
+
+def run(args) -> int:
+    trials = sorted((data_dir() / "broad").glob("*.mat"))
+    if not trials:
+        print(f"symkf bench marg: no BROAD trials in {data_dir() / 'broad'}")
+        return 1
+    result = {"build_seconds": cold_build_seconds(), "timing_trial": trials[0].stem, "timing_us_per_sample": {},
+              "rmse_deg": {}, "notes": "medians; 9-axis; machine shared, numbers are indicative"}
+    compiled = load("marg", backend="compiled")
+    first = load_recording(trials[0])
+    for form in FORMS:
+        result["timing_us_per_sample"][form] = time_form(compiled, first, form, args)
+    for path in trials:
+        recording = first if path == trials[0] else load_recording(path)
+        result["rmse_deg"][path.stem] = {form: accuracy(compiled, recording, form) for form in FORMS}
+    text = json.dumps(result, indent=1)
+    if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(text)
+    if args.json:
+        print(text)
+    else:
+        _print_tables(result)
+    return 0
+
+
+def _print_tables(result: dict) -> None:
+    print(f"build (generate + compile, cold): {result['build_seconds']:.2f} s")
+    print(f"\nus per sample ({result['timing_trial']}):")
+    print(f"{'form':8} {'step (bound)':>13} {'step (API)':>11} {'run':>8} {'NumPy ref':>10} {'ref/run':>8}")
+    for form, t in result["timing_us_per_sample"].items():
+        print(f"{form:8} {t['step_bound_us']:13.3f} {t['step_api_us']:11.2f} {t['run_us']:8.3f} "
+              f"{t['numpy_reference_us']:10.1f} {t['numpy_reference_us'] / t['run_us']:8.0f}")
+    print("\nBROAD RMSE total/heading/inclination [deg], movement phases:")
+    for trial, forms in result["rmse_deg"].items():
+        for form, r in forms.items():
+            a, b = r["beta_0.041"], r["best"]
+            print(f"{trial:36} {form:6} beta=0.041: {a['total']:5.2f}/{a['heading']:5.2f}/{a['inclination']:5.2f}"
+                  f"   best beta={r['best_beta']:<8g}: {b['total']:5.2f}/{b['heading']:5.2f}/{b['inclination']:5.2f}")

@@ -1,0 +1,273 @@
+"""Paper 001, Fig 3 on real recordings: Euler angles (5) for several gains β, accuracy and oscillation.
+
+    symkf compare marg --data ../shared/data/broad/01_undisturbed_slow_rotation_A.mat \\
+        --beta 0.01,0.5 --out results/marg [--sweep] [--form simple|full] [--mode marg|imu]
+
+For every β: the Euler angles (5) of the estimate vs time (with the optical reference when the
+recording has one; BROAD trials do, the x-io CSV does not), the BROAD error metric (total,
+heading, inclination RMSE over movement phases, deg; ``runtime/marg.py``), and two measures of
+the paper's claim that a larger β brings high-frequency oscillation:
+
+- ``hf_rms_deg``: RMS of the Euler angles' content above ``--hf-cutoff`` Hz (default 5 Hz; body
+  motion in these recordings is well below it), from the FFT of the unwrapped, detrended angles;
+- ``diff_rms_deg``: RMS of the first difference of the unwrapped Euler angles (deg per sample);
+- ``still_diff_rms_deg`` (BROAD): the same over rest phases (``movement == 0``) only, where the
+  sensor does not move and every change is estimator oscillation;
+- ``error_hf_rms_deg`` (BROAD): RMS above the cutoff of the error rotation vector
+  (``q_est ⊗ q_ref⁻¹``, earth frame; the norm over its three components), i.e. the
+  oscillation of the estimate about the optical reference, motion removed.
+
+Both are also given for the optical reference (NaN gaps linearly interpolated) as the floor of
+real motion. ``--sweep`` adds RMSE and oscillation vs β on a log grid and marks the β of least
+total RMSE (beyond the paper). Everything goes to ``<out>/summary.json`` and PNG figures.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+from ..models.marg import ALPHA_DEFAULT
+from ..runtime import load
+from ..runtime.marg import (MargFilter, Recording, broad_errors, data_dir, error_rotation_vectors, euler_angles,
+                            from_enu, load_recording, to_enu)
+
+DEFAULT_DATA = data_dir() / "broad" / "01_undisturbed_slow_rotation_A.mat"
+SWEEP_BETAS = np.round(np.logspace(-3, 0, 19), 5)
+ANGLE_NAMES = ("psi (yaw)", "theta (pitch)", "phi (roll)")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    import symkf
+    parser.add_argument("--data", type=Path, default=DEFAULT_DATA, help="a BROAD .mat or an x-io .csv recording")
+    parser.add_argument("--beta", type=_float_list, default=[0.01, 0.5], help="comma-separated gains (rad/s)")
+    parser.add_argument("--out", type=Path, default=Path(symkf.PROJECT_ROOT) / "results" / "marg")
+    parser.add_argument("--sweep", action="store_true", help="also sweep beta on a log grid and mark the best")
+    parser.add_argument("--form", choices=("simple", "full"), default="simple",
+                        help="simplified form (31) (the paper's Fig 3) or full form (26)-(30)")
+    parser.add_argument("--mode", choices=("marg", "imu"), default="marg", help="9-axis or 6-axis")
+    parser.add_argument("--alpha", type=float, default=ALPHA_DEFAULT, help="eq (28), full form only")
+    parser.add_argument("--hf-cutoff", type=float, default=5.0, help="Hz, for the oscillation measure")
+    parser.add_argument("--zoom", type=float, nargs=2, default=(0.0, 20.0), metavar=("T0", "T1"),
+                        help="time window (s) of the zoomed Euler-angle figure")
+    parser.add_argument("--no-plots", action="store_true")
+
+
+def _float_list(text: str) -> list[float]:
+    try:
+        values = [float(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
+    if not values or any(v < 0 for v in values):
+        raise argparse.ArgumentTypeError("expected one or more gains >= 0")
+    return values
+
+
+# ---------------------------------------------------------------------- measures
+def _unwrapped_degrees(angles: np.ndarray) -> np.ndarray:
+    return np.degrees(np.unwrap(angles, axis=0))
+
+
+def _fill_gaps(series: np.ndarray) -> np.ndarray:
+    """Linear interpolation over NaN rows (the optical reference loses markers now and then)."""
+    out = series.copy()
+    index = np.arange(series.shape[0])
+    for j in range(series.shape[1]):
+        good = np.isfinite(series[:, j])
+        out[:, j] = np.interp(index, index[good], series[good, j])
+    return out
+
+
+def high_frequency_rms(series: np.ndarray, rate_hz: float, cutoff_hz: float) -> np.ndarray:
+    """Per column, the RMS of the content above ``cutoff_hz`` (NaN gaps interpolated, linear trend removed)."""
+    filled = _fill_gaps(series)
+    n = filled.shape[0]
+    trend = np.linspace(0, 1, n)[:, None] * (filled[-1] - filled[0]) + filled[0]   # no step at the wrap-around
+    spectrum = np.fft.rfft(filled - trend, axis=0)
+    spectrum[np.fft.rfftfreq(n, 1 / rate_hz) < cutoff_hz] = 0
+    return np.sqrt(np.mean(np.fft.irfft(spectrum, n=n, axis=0) ** 2, axis=0))
+
+
+def oscillation(angles: np.ndarray, rate_hz: float, cutoff_hz: float,
+                still: np.ndarray | None = None) -> dict[str, list[float]]:
+    """High-frequency RMS above ``cutoff_hz`` and first-difference RMS of Euler angles (N, 3) rad, deg.
+
+    With ``still`` (a per-sample flag of rest phases, e.g. BROAD's ``movement == 0``), also the
+    first-difference RMS over consecutive still samples only: there the sensor does not move, so
+    all of it is estimator oscillation.
+    """
+    deg = _unwrapped_degrees(_fill_gaps(angles))
+    diff = np.diff(deg, axis=0)
+    result = {"hf_rms_deg": high_frequency_rms(deg, rate_hz, cutoff_hz).tolist(),
+              "diff_rms_deg": np.sqrt(np.mean(diff**2, axis=0)).tolist()}
+    if still is not None:
+        both = still[1:] & still[:-1]
+        result["still_diff_rms_deg"] = np.sqrt(np.mean(diff[both] ** 2, axis=0)).tolist()
+    return result
+
+
+def _still(recording: Recording) -> np.ndarray | None:
+    return None if recording.movement is None else ~recording.movement
+
+
+# ---------------------------------------------------------------------- one beta
+def run_beta(compiled, recording: Recording, beta: float, args) -> tuple[dict, np.ndarray]:
+    filt = MargFilter(compiled, args.form, args.mode, beta=beta, alpha=args.alpha)
+    result = filt.run_recording(recording)
+    angles = euler_angles(result.q)
+    rate = 1 / np.median(recording.dt[1:])
+    entry = {"beta": beta, "failed_steps": int(result.failed_steps.size),
+             "oscillation": oscillation(angles, rate, args.hf_cutoff, _still(recording))}
+    if recording.reference is not None:
+        entry["broad_rmse_deg"] = broad_errors(result.q, recording)
+        error = np.degrees(error_rotation_vectors(to_enu(result.q), recording.reference))
+        error_hf = high_frequency_rms(error, rate, args.hf_cutoff)
+        entry["oscillation"]["error_hf_rms_deg"] = float(np.linalg.norm(error_hf))
+    return entry, angles
+
+
+def sweep(compiled, recording: Recording, args) -> dict:
+    rows = [run_beta(compiled, recording, float(beta), args)[0] for beta in SWEEP_BETAS]
+    out = {"betas": SWEEP_BETAS.tolist(), "rows": rows}
+    if recording.reference is not None:
+        totals = [r["broad_rmse_deg"]["total"] for r in rows]
+        best = int(np.argmin(totals))
+        out["best_beta"] = float(SWEEP_BETAS[best])
+        out["best_rmse_deg"] = rows[best]["broad_rmse_deg"]
+    return out
+
+
+# ---------------------------------------------------------------------- figures
+def plot_euler(recording: Recording, per_beta: list[tuple[float, np.ndarray]], reference: np.ndarray | None,
+               path: Path, window: tuple[float, float] | None = None) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, axes = plt.subplots(3, len(per_beta), figsize=(5.5 * len(per_beta), 7), sharex=True, squeeze=False)
+    t = recording.time - recording.time[0]
+    shown = slice(None) if window is None else (t >= window[0]) & (t <= window[1])
+    t = t[shown]
+    for col, (beta, angles) in enumerate(per_beta):
+        for row in range(3):
+            ax = axes[row, col]
+            if reference is not None:
+                ax.plot(t, np.degrees(reference[shown, row]), color="0.6", lw=0.8, label="optical reference")
+            ax.plot(t, np.degrees(angles[shown, row]), lw=0.6, label=f"estimate, beta = {beta:g}")
+            ax.set_ylabel(f"{ANGLE_NAMES[row]} [deg]")
+            if row == 0:
+                ax.set_title(f"beta = {beta:g} rad/s")
+                ax.legend(loc="upper right", fontsize=7)
+        axes[2, col].set_xlabel("time [s]")
+    span = "" if window is None else f", {window[0]:g}-{window[1]:g} s"
+    fig.suptitle(f"Euler angles (5), {recording.name}{span} (cf. paper 001 Fig 3)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def plot_sweep(result: dict, path: Path, name: str) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    betas = np.array(result["betas"])
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4))
+    if "best_beta" in result:
+        for key in ("total", "heading", "inclination"):
+            ax1.semilogx(betas, [r["broad_rmse_deg"][key] for r in result["rows"]], marker=".", label=key)
+        ax1.axvline(result["best_beta"], color="k", ls="--", lw=0.8, label=f"best beta = {result['best_beta']:g}")
+        ax1.set_ylabel("BROAD RMSE [deg]")
+        ax1.legend()
+    ax1.set_xlabel("beta [rad/s]")
+    ax1.set_title(name)
+    osc = [r["oscillation"] for r in result["rows"]]
+    if "error_hf_rms_deg" in osc[0]:        # motion removed: oscillation about the reference, and at rest
+        ax2.loglog(betas, [o["error_hf_rms_deg"] for o in osc], marker=".", label="error HF RMS [deg]")
+        ax2.loglog(betas, [np.linalg.norm(o["still_diff_rms_deg"]) for o in osc], marker=".",
+                   label="still-phase diff RMS [deg/sample]")
+    else:
+        hf = np.array([o["hf_rms_deg"] for o in osc])
+        for j in range(3):
+            ax2.loglog(betas, hf[:, j], marker=".", label=f"{ANGLE_NAMES[j]} HF RMS [deg]")
+    ax2.set_title("oscillation measures")
+    ax2.set_xlabel("beta [rad/s]")
+    ax2.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+# ---------------------------------------------------------------------- command
+def run(args) -> int:
+    try:
+        recording = load_recording(args.data)
+    except (FileNotFoundError, ValueError) as exc:
+        print(f"symkf compare marg: {exc} (recordings live in ../shared/data, see its README)")
+        return 1
+    compiled = load("marg")
+    args.out.mkdir(parents=True, exist_ok=True)
+    per_beta, entries = [], []
+    for beta in args.beta:
+        entry, angles = run_beta(compiled, recording, beta, args)
+        entries.append(entry)
+        per_beta.append((beta, angles))
+    rate = 1 / np.median(recording.dt[1:])
+    summary = {"recording": str(args.data), "source": recording.source, "samples": len(recording),
+               "rate_hz": rate, "form": args.form, "mode": args.mode,
+               "alpha": args.alpha if args.form == "full" else None,
+               "hf_cutoff_hz": args.hf_cutoff, "per_beta": entries,
+               "euler_convention": "eq (5) applied to q* (sensor yaw psi, pitch theta, roll phi; Z-Y-X), "
+                                   "earth frame north-west-up"}
+    reference_angles = None
+    if recording.reference is not None:
+        reference_angles = euler_angles(from_enu(recording.reference))
+        reference_angles[~np.isfinite(recording.reference).all(axis=1)] = np.nan   # markers lost
+        summary["reference_oscillation"] = oscillation(reference_angles, rate, args.hf_cutoff, _still(recording))
+    if args.sweep:
+        summary["sweep"] = sweep(compiled, recording, args)
+    figures = []
+    if not args.no_plots:
+        path = args.out / f"euler_{recording.name}_{args.form}_{args.mode}.png"
+        plot_euler(recording, per_beta, reference_angles, path)
+        figures.append(str(path))
+        zoom = args.out / f"euler_zoom_{recording.name}_{args.form}_{args.mode}.png"
+        plot_euler(recording, per_beta, reference_angles, zoom, window=tuple(args.zoom))
+        figures.append(str(zoom))
+        if args.sweep:
+            path = args.out / f"sweep_{recording.name}_{args.form}_{args.mode}.png"
+            plot_sweep(summary["sweep"], path, recording.name)
+            figures.append(str(path))
+    summary["figures"] = figures
+    if args.mode == "imu":
+        summary["note"] = ("6-axis mode: the heading is unobservable (initial heading from a sensor axis), so "
+                           "BROAD total/heading errors are not meaningful; read the inclination error")
+    (args.out / "summary.json").write_text(json.dumps(summary, indent=1))
+    _print_table(summary)
+    return 0
+
+
+def _print_table(summary: dict) -> None:
+    print(f"{summary['recording']}  ({summary['samples']} samples, {summary['rate_hz']:.1f} Hz, "
+          f"form {summary['form']}, mode {summary['mode']})")
+    print(f"{'beta':>8} {'total':>7} {'heading':>8} {'incl':>6} | HF RMS > {summary['hf_cutoff_hz']:g} Hz "
+          "psi/theta/phi [deg] | diff RMS [deg/sample] | still diff RMS | error HF")
+    rows = [(e["beta"], e) for e in summary["per_beta"]]
+    for beta, e in rows:
+        rmse = e.get("broad_rmse_deg")
+        acc = (f"{rmse['total']:7.2f} {rmse['heading']:8.2f} {rmse['inclination']:6.2f}" if rmse
+               else f"{'-':>7} {'-':>8} {'-':>6}")
+        hf = "/".join(f"{v:.4f}" for v in e["oscillation"]["hf_rms_deg"])
+        df = "/".join(f"{v:.4f}" for v in e["oscillation"]["diff_rms_deg"])
+        still = "/".join(f"{v:.5f}" for v in e["oscillation"].get("still_diff_rms_deg", []))
+        err_hf = e["oscillation"].get("error_hf_rms_deg")
+        print(f"{beta:8g} {acc} | {hf} | {df} | {still} | " + ("" if err_hf is None else f"{err_hf:.4f}"))
+    if "reference_oscillation" in summary:
+        ref = summary["reference_oscillation"]
+        print(f"{'optical reference':>32} | " + "/".join(f"{v:.4f}" for v in ref["hf_rms_deg"]) + " | "
+              + "/".join(f"{v:.4f}" for v in ref["diff_rms_deg"]) + " | "
+              + "/".join(f"{v:.5f}" for v in ref.get("still_diff_rms_deg", [])))
+    if "sweep" in summary and "best_beta" in summary["sweep"]:
+        best = summary["sweep"]["best_rmse_deg"]
+        print(f"sweep: best beta = {summary['sweep']['best_beta']:g} rad/s, total RMSE {best['total']:.2f} deg "
+              f"(heading {best['heading']:.2f}, inclination {best['inclination']:.2f})")
