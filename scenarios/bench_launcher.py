@@ -1,0 +1,252 @@
+"""symkf bench launcher — µs per EKF/UKF predict+update step on four paths, measured side by side.
+
+Paths (rows ``{"filter", "path", "us_per_step", ...}``):
+- ``numpy_reference``: runtime/reference.py (NumPy algebra, model through CasADi calls);
+- ``compiled_step``: ``KalmanFilter.step`` — one C call per step from Python;
+- ``c_loop``: the same generated ``launcher_<filter>_step_radar`` called in a C loop (no Python),
+  from a harness compiled against build/launcher/ with the library's flags;
+- ``compiled_run``: per step inside one ``launcher_<filter>_step_radar_run`` call;
+- ``filterpy`` (when FilterPy is installed, ``pip install -e .[bench]``): FilterPy's EKF and UKF
+  on the same model, calling our compiled f_d, F, h, H, with the same kappa.
+Each figure is the median over batches of consecutive steps of a real 20 Hz flight segment.
+``--campaign`` adds ``campaign_wall_s``: the wall time of the default ``compare`` (4 cases x
+100 runs x both filters).
+"""
+from __future__ import annotations
+
+import json
+import statistics
+import subprocess
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..codegen import build_model
+from ..codegen.build import compiler
+from ..models import launcher as L
+from ..runtime import load
+from ..runtime.reference import ReferenceFilter
+from .launcher_campaign import TUNING, Campaign, initial_estimate, Case
+from .launcher_truth import propagate, radar_track
+
+FILTERS = ("ekf", "ukf")
+RATE_HZ = 20
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("--json", action="store_true", help="print the JSON object only")
+    parser.add_argument("--steps", type=int, default=10000, help="steps per compiled path (default 10000)")
+    parser.add_argument("--reference-steps", type=int, default=10000,
+                        help="steps for the NumPy reference and FilterPy (default 10000)")
+    parser.add_argument("--campaign", action="store_true", help="also time the default compare campaign")
+
+
+def run(args) -> int:
+    report = measure(args.steps, args.reference_steps, args.campaign)
+    if args.json:
+        print(json.dumps(report, indent=1))
+    else:
+        print(human_table(report))
+    return 0
+
+
+# ---------------------------------------------------------------------- workload
+class Workload:
+    """A 20 Hz flight segment (truth, radar draws, stations) repeated to any length."""
+
+    def __init__(self, steps: int):
+        times = np.arange(int(L.T_INSERTION * RATE_HZ) + 1) / RATE_HZ
+        truth = propagate(times)
+        track = radar_track(times, truth)
+        self.base_times, self.truth = times, truth
+        self.z, self.q = track.noisy(np.random.default_rng(0)), track.station_params()
+        self.steps = steps
+        self.x0, self.P0 = initial_estimate(Case(RATE_HZ, "small"), truth[0])
+
+    def index(self, k: int) -> int:
+        return 1 + k % (len(self.base_times) - 1)
+
+
+def _median_us(batch_seconds: list[float], batch: int) -> float:
+    return 1e6 * statistics.median(batch_seconds) / batch
+
+
+def time_compiled_step(model, family: str, work: Workload, batch: int = 100) -> float:
+    f = model.filter(family, work.x0, work.P0, TUNING["Q"], kappa=TUNING["kappa"])
+    times, z, q, dt = work.base_times, work.z, work.q, 1.0 / RATE_HZ
+    batches, k = [], 0
+    while k < work.steps:
+        start = time.perf_counter()
+        for _ in range(batch):
+            i = work.index(k)
+            f.step(times[i - 1], dt, z[i], q=q[i])
+            k += 1
+        batches.append(time.perf_counter() - start)
+        if i == len(times) - 1:
+            f.x, f.P = work.x0, work.P0
+    return _median_us(batches, batch)
+
+
+def time_compiled_run(model, family: str, work: Workload) -> float:
+    f = model.filter(family, work.x0, work.P0, TUNING["Q"], kappa=TUNING["kappa"])
+    n = len(work.base_times)
+    repeats = max(1, int(np.ceil(work.steps / n)))
+    per_step = []
+    for _ in range(max(repeats, 3)):
+        f.x, f.P = work.x0, work.P0
+        start = time.perf_counter()
+        f.run(work.base_times, work.z, q=work.q)
+        per_step.append((time.perf_counter() - start) / n)
+    return 1e6 * statistics.median(per_step)
+
+
+def time_reference(family: str, work: Workload, steps: int, batch: int = 50) -> float:
+    ref = ReferenceFilter("launcher", family, work.x0, work.P0, TUNING["Q"], kappa=TUNING["kappa"])
+    times, dt = work.base_times, 1.0 / RATE_HZ
+    batches = []
+    for b in range(max(1, steps // batch)):
+        start = time.perf_counter()
+        for k in range(b * batch, (b + 1) * batch):
+            i = work.index(k)
+            ref.step(times[i - 1], dt, work.z[i], "radar", work.q[i])
+        batches.append(time.perf_counter() - start)
+    return _median_us(batches, batch)
+
+
+C_LOOP = r"""
+#include <stdio.h>
+#include <time.h>
+#include "launcher.h"
+/* stdin: x0[6] P0[36] Q[36] R[9] kappa p[5] n_base, n_base lines t z[3] q[2]; argv[1]: ekf|ukf, argv[2]: steps */
+static double now(void) { struct timespec ts; clock_gettime(CLOCK_MONOTONIC, &ts); return ts.tv_sec + 1e-9 * ts.tv_nsec; }
+static int rd(double *v, int n) { int i; for (i = 0; i < n; ++i) if (scanf("%lf", &v[i]) != 1) return 0; return 1; }
+static double T[20000], Z[60000], QS[40000];
+int main(int argc, char **argv) {
+  double x0[6], P0[36], x[6], P[36], Q[36], R[9], kappa, p[5], y[3], S[9], u[1], mask[3] = {1, 1, 1};
+  double dt = 0.05, batches[1000], start;
+  int n, i, k, b, nb, steps, ukf, code = 0;
+  if (argc < 3 || !rd(x0, 6) || !rd(P0, 36) || !rd(Q, 36) || !rd(R, 9) || !rd(&kappa, 1) || !rd(p, 5)) return 2;
+  ukf = argv[1][0] == 'u';
+  if (sscanf(argv[2], "%d", &steps) != 1 || scanf("%d", &n) != 1 || n > 20000) return 2;
+  for (i = 0; i < n; ++i) if (!rd(&T[i], 1) || !rd(&Z[3 * i], 3) || !rd(&QS[2 * i], 2)) return 2;
+  for (i = 0; i < 6; ++i) x[i] = x0[i];
+  for (i = 0; i < 36; ++i) P[i] = P0[i];
+  nb = steps / 100 > 1000 ? 1000 : steps / 100;
+  for (b = 0, k = 0; b < nb; ++b) {
+    start = now();
+    for (i = 0; i < 100; ++i, ++k) {
+      int j = 1 + k % (n - 1);
+      if (j == 1) { int m; for (m = 0; m < 6; ++m) x[m] = x0[m]; for (m = 0; m < 36; ++m) P[m] = P0[m]; }
+      code |= ukf ? launcher_ukf_step_radar(&T[j - 1], &dt, x, P, u, p, Q, &QS[2 * j], &Z[3 * j], mask, R, &kappa, x, P, y, S)
+                  : launcher_ekf_step_radar(&T[j - 1], &dt, x, P, u, p, Q, &QS[2 * j], &Z[3 * j], mask, R, x, P, y, S);
+    }
+    batches[b] = (now() - start) / 100;
+  }
+  for (i = 1; i < nb; ++i) { double v = batches[i]; int m = i - 1; while (m >= 0 && batches[m] > v) { batches[m + 1] = batches[m]; --m; } batches[m + 1] = v; }
+  printf("%.6f %d\n", 1e6 * batches[nb / 2], code);
+  return 0;
+}
+"""
+
+
+def time_c_loop(work: Workload, steps: int) -> dict[str, float]:
+    """Compile the C loop against build/launcher/ (library flags) and run it for both filters."""
+    result = build_model("launcher")
+    manifest = json.loads(result.manifest.read_text())
+    with tempfile.TemporaryDirectory() as tmp:
+        exe = Path(tmp) / "c_loop"
+        (Path(tmp) / "c_loop.c").write_text(C_LOOP)
+        cmd = compiler().split() + ["-std=c99", *manifest["optimization"].split(), "-D_POSIX_C_SOURCE=199309L",
+                                    f"-I{result.directory}", "-o", str(exe), str(Path(tmp) / "c_loop.c"),
+                                    str(result.directory / f"{manifest['hashed_library']}"), "-lm"]
+        subprocess.run(cmd, check=True, capture_output=True, text=True)
+        Q, R = TUNING["Q"], np.diag(np.square(L.RADAR_SIGMA))
+        p = [L.GUIDANCE[name] for name in L.GUIDANCE_PARAMS]
+        head = np.concatenate([work.x0, work.P0.ravel("F"), Q.ravel("F"), R.ravel("F"), [TUNING["kappa"]], p])
+        lines = [" ".join(f"{v:.17g}" for v in head), str(len(work.base_times))]
+        lines += [" ".join(f"{v:.17g}" for v in np.concatenate([[t], z, q]))
+                  for t, z, q in zip(work.base_times, work.z, work.q)]
+        out = {}
+        for family in FILTERS:
+            proc = subprocess.run([str(exe), family, str(steps)], input="\n".join(lines), capture_output=True,
+                                  text=True, check=True, env={"LD_LIBRARY_PATH": str(result.directory)})
+            value, code = proc.stdout.split()
+            if int(code):
+                raise RuntimeError(f"c_loop: {family} step returned a failure code")
+            out[family] = float(value)
+    return out
+
+
+def time_filterpy(model, family: str, work: Workload, steps: int) -> float | None:
+    """FilterPy's own EKF/UKF on our compiled model functions (None if FilterPy is absent)."""
+    try:
+        from .filterpy_adapter import make_filterpy_filter
+    except ImportError:
+        return None
+    step = make_filterpy_filter(model, family, work.x0, work.P0, TUNING["Q"], TUNING["kappa"])
+    batches, batch = [], 50
+    for b in range(max(1, steps // batch)):
+        start = time.perf_counter()
+        for k in range(b * batch, (b + 1) * batch):
+            i = work.index(k)
+            step(work.base_times[i - 1], 1.0 / RATE_HZ, work.z[i], work.q[i])
+        batches.append(time.perf_counter() - start)
+    return _median_us(batches, batch)
+
+
+def measure(steps: int, reference_steps: int, campaign: bool) -> dict:
+    model = load("launcher", backend="compiled")
+    work = Workload(steps)
+    c_loop = time_c_loop(work, steps)
+    rows = []
+    for family in FILTERS:
+        figures = {"numpy_reference": time_reference(family, work, reference_steps),
+                   "compiled_step": time_compiled_step(model, family, work),
+                   "c_loop": c_loop[family],
+                   "compiled_run": time_compiled_run(model, family, work),
+                   "filterpy": time_filterpy(model, family, work, reference_steps)}
+        rows += [{"filter": family, "path": path, "us_per_step": value} for path, value in figures.items()
+                 if value is not None]
+    report = {"rows": rows, "paper_ms_per_step": L.PAPER_MS_PER_STEP, "ratios": ratios(rows),
+              "steps": steps, "reference_steps": reference_steps}
+    if campaign:
+        start = time.perf_counter()
+        Campaign(100, 2005).run()
+        report["campaign_wall_s"] = time.perf_counter() - start
+    return report
+
+
+def ratios(rows: list[dict]) -> dict:
+    value = {(r["filter"], r["path"]): r["us_per_step"] for r in rows}
+    out = {}
+    for family in FILTERS:
+        step = value[(family, "compiled_step")]
+        out[family] = {"numpy_reference/compiled_step": value[(family, "numpy_reference")] / step,
+                       "compiled_step/c_loop": step / value[(family, "c_loop")],
+                       "compiled_run/c_loop": value[(family, "compiled_run")] / value[(family, "c_loop")]}
+        if (family, "filterpy") in value:
+            out[family]["filterpy/compiled_step"] = value[(family, "filterpy")] / step
+    paths = sorted({r["path"] for r in rows})
+    out["ukf/ekf"] = {path: value[("ukf", path)] / value[("ekf", path)] for path in paths
+                      if ("ukf", path) in value and ("ekf", path) in value}
+    return out
+
+
+def human_table(report: dict) -> str:
+    value = {(r["filter"], r["path"]): r["us_per_step"] for r in report["rows"]}
+    paths = [p for p in ("numpy_reference", "filterpy", "compiled_step", "compiled_run", "c_loop")
+             if ("ekf", p) in value]
+    lines = [f"{'path':<18}{'EKF us/step':>14}{'UKF us/step':>14}{'UKF/EKF':>10}",
+             f"{'paper (MATLAB)':<18}{report['paper_ms_per_step']['ekf'] * 1e3:>14.1f}"
+             f"{report['paper_ms_per_step']['ukf'] * 1e3:>14.1f}"
+             f"{report['paper_ms_per_step']['ukf'] / report['paper_ms_per_step']['ekf']:>10.2f}"]
+    for path in paths:
+        e, u = value[("ekf", path)], value[("ukf", path)]
+        lines.append(f"{path:<18}{e:>14.2f}{u:>14.2f}{u / e:>10.2f}")
+    for family in FILTERS:
+        lines.append(f"{family}: " + ", ".join(f"{k} = {v:.1f}" for k, v in report["ratios"][family].items()))
+    if "campaign_wall_s" in report:
+        lines.append(f"campaign (4 cases x 100 runs x 2 filters): {report['campaign_wall_s']:.1f} s")
+    return "\n".join(lines)
