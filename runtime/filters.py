@@ -14,13 +14,20 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..codegen.spec import STATUS_NONFINITE
 from .backends import SymkfError
 
-STATUS_NONFINITE = 3
 
 
 def _matrix(shape) -> np.ndarray:
     return np.zeros(shape, order="F")
+
+
+def _exact_array(name: str, value, target: np.ndarray) -> np.ndarray:
+    """``value`` as float64 of exactly ``target``'s shape (fast for ndarrays; hot path)."""
+    if type(value) is np.ndarray and value.dtype is target.dtype and value.shape == target.shape:
+        return value
+    return as_array(name, value, target.shape)
 
 
 def as_array(name: str, value, shape: tuple[int, ...]) -> np.ndarray:
@@ -99,18 +106,18 @@ class KalmanFilter:
             self.measurements[name] = buffers
         self._default_measurement = next(iter(self.measurements), None)
         self._mask_dirty = False
-        self._calls = {}
         self._t_buffer, self._dt_buffer = self._buffers["t"], self._buffers["dt"]
         self._bind(compiled)
 
     # ------------------------------------------------------------------ binding
     def _bind(self, compiled) -> None:
         backend = compiled.backend
-        self._calls["predict"] = backend.bind(f"{self.family}_predict", self._buffers)
+        self._predict_call = backend.bind(f"{self.family}_predict", self._buffers)
+        self._update_calls, self._step_calls = {}, {}
         for name, buffers in self.measurements.items():
             merged = {**self._buffers, **vars(buffers)}
-            self._calls[("update", name)] = backend.bind(f"{self.family}_update_{name}", merged)
-            self._calls[("step", name)] = backend.bind(f"{self.family}_step_{name}", merged)
+            self._update_calls[name] = backend.bind(f"{self.family}_update_{name}", merged)
+            self._step_calls[name] = backend.bind(f"{self.family}_step_{name}", merged)
         self._backend = backend
 
     # ------------------------------------------------------------------ state views
@@ -176,9 +183,13 @@ class KalmanFilter:
     # ------------------------------------------------------------------ steps
     def predict(self, t: float, dt: float, u=None) -> None:
         """Propagate from time t to t + dt."""
-        self._set_time(t, dt)
-        self._set_input(u)
-        self._check(self._calls["predict"](), "predict")
+        self._t_buffer[0] = t
+        self._dt_buffer[0] = dt
+        if u is not None:
+            self._set_input(u)
+        code = self._predict_call()
+        if code:
+            self._raise(code, "predict")
         self.t = t + dt
 
     def update(self, z, measurement: str | None = None, q=None, mask=None, t: float | None = None,
@@ -192,49 +203,46 @@ class KalmanFilter:
         """
         name = measurement or self._default_measurement
         buffers = self._prepare_measurement(name, z, q, mask, nan)
-        self._buffers["t"][0] = self.t if t is None else t
-        self._set_input(u)
-        self._check(self._calls[("update", name)](), f"update '{name}'", buffers)
+        self._t_buffer[0] = self.t if t is None else t
+        if u is not None:
+            self._set_input(u)
+        code = self._update_calls[name]()
+        if code:
+            self._raise(code, f"update '{name}'", buffers)
 
     def step(self, t: float, dt: float, z, measurement: str | None = None, q=None, mask=None,
              u=None, nan: str = "raise") -> None:
         """predict(t, dt) then update(z) at t + dt — one call into the compiled code."""
         name = measurement or self._default_measurement
         buffers = self._prepare_measurement(name, z, q, mask, nan)
-        self._set_time(t, dt)
-        self._set_input(u)
-        self._check(self._calls[("step", name)](), f"step '{name}'", buffers)
+        self._t_buffer[0] = t
+        self._dt_buffer[0] = dt
+        if u is not None:
+            self._set_input(u)
+        code = self._step_calls[name]()
+        if code:
+            self._raise(code, f"step '{name}'", buffers)
         self.t = t + dt
 
     # ------------------------------------------------------------------ helpers
-    def _set_time(self, t: float, dt: float) -> None:
-        self._t_buffer[0] = t
-        self._dt_buffer[0] = dt
-
     def _set_input(self, u) -> None:
-        if u is not None:
-            self._buffers["u"][:] = as_array("u", u, self._buffers["u"].shape)
+        self._buffers["u"][:] = as_array("u", u, self._buffers["u"].shape)
 
     def _prepare_measurement(self, name: str, z, q, mask, nan: str) -> MeasurementBuffers:
         """Validate, then copy z (and q, mask) into the buffers; nothing is written on error."""
         buffers = self.measurements.get(name)
         if buffers is None:
             raise ValueError(f"measurement: '{name}' is not one of {list(self.measurements)}")
-        try:
-            z_array = np.asarray(z, dtype=float)
-        except (TypeError, ValueError):
-            z_array = None
-        if z_array is None or z_array.shape != buffers.z.shape:
-            z_array = as_array("z", z, buffers.z.shape)
+        z_array = _exact_array("z", z, buffers.z)
         if mask is not None or nan != "raise" or self._mask_dirty:
             new_mask = self._new_mask(buffers, z_array, mask, nan)
         else:
             new_mask = None
         if q is not None:
-            buffers.q[:] = as_array("q", q, buffers.q.shape)
-        buffers.z[:] = z_array
+            buffers.q[...] = _exact_array("q", q, buffers.q)
+        buffers.z[...] = z_array
         if new_mask is not None:
-            buffers.mask[:] = new_mask
+            buffers.mask[...] = new_mask
             self._mask_dirty = not bool(new_mask.all())
         return buffers
 
@@ -248,9 +256,7 @@ class KalmanFilter:
             raise ValueError("nan: expected 'raise' or 'mask'")
         return new_mask
 
-    def _check(self, code: int, what: str, buffers: MeasurementBuffers | None = None) -> None:
-        if code == 0:
-            return
+    def _raise(self, code: int, what: str, buffers: MeasurementBuffers | None = None) -> None:
         detail = ""
         if code == STATUS_NONFINITE and buffers is not None:
             bad = ~np.isfinite(buffers.z) & (buffers.mask > 0.5)
