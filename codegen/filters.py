@@ -234,7 +234,7 @@ def compose_step(name: str, predict: Kernel, update: Kernel) -> Kernel:
     function = ca.Function(f"{model}_k_{name}", [sym[a.name] for a in inputs], outputs,
                            [a.name for a in inputs], [a.name for a in update.outputs],
                            {"allow_duplicate_io_names": True})
-    doc = f"{predict.doc.split(' (')[0]} then {update.doc[0].lower()}{update.doc[1:]} (one call)."
+    doc = f"{predict.doc.split(' (')[0]}; then {update.doc} Both in one call."
     return Kernel(name, function, doc, tuple(inputs), update.outputs, carried=("x", "P"),
                   per_step=tuple(a.name for a in inputs if a.name in ("t", "dt", "u", "q", "z", "mask")))
 
