@@ -24,8 +24,10 @@ Choices the paper leaves open (documented, each a named constant below):
   178.0 tf the stage-1 burnout speed is about 5.7 km/s at Table 2's 78.8 km instead of 4.68;
   the stage-2 flow is *solved* with the guidance so the burnout meets the insertion conditions
   over Table 2's burn window (the solved value is in GUIDANCE; Table 1 says 36.8 kg/s).
-- Guidance (not given in the paper): vertical-ish lift-off with initial flight-path angle
-  gamma_0 (a pitch kick), then angle of attack alpha(t) = a1 (t/t1)^2 + a2 (t/t1) in stage 1,
+- Guidance (not given in the paper): lift-off with initial flight-path angle gamma_0 <= 86 deg
+  (a pitch kick; the state's heading psi is singular at gamma = 90 deg, where Vinh's equations
+  divide by cos(gamma), so a near-vertical start makes psi unobservable and lets estimates cross
+  90 deg), then angle of attack alpha(t) = a0 + a1 (t/t1)^2 + a2 (t/t1) in stage 1,
   zero in the coast, and alpha(t) = b0 + b1 (t - t_ign) in stage 2 (linear steering). The
   numbers are solved with IPOPT by ``symkf.scenarios.launcher_guidance`` to meet Table 2;
   its output is pasted into GUIDANCE below.
@@ -127,14 +129,15 @@ PAPER_MS_PER_STEP = {"ekf": 2.32, "ukf": 9.22}
 #: Guidance and stage-2 flow solved by ``symkf.scenarios.launcher_guidance`` (IPOPT) to meet
 #: Table 2 and the insertion conditions. Regenerate with ``symkf design-guidance``.
 GUIDANCE = {
-    "initial_flight_path_angle": 1.5690510132333955,   # rad (89.9 deg: near-vertical lift-off)
-    "stage1_alpha_quadratic": 0.28627968140984383,      # rad
-    "stage1_alpha_linear": -0.2573925528623888,         # rad
-    "stage2_alpha_0": 0.15275582199622909,              # rad
-    "stage2_alpha_rate": -0.003490658538864803,         # rad/s
-    "stage2_mass_flow": 34.88417424973722,              # kg/s (Table 1: 36.8)
+    "initial_flight_path_angle": 1.5009831716994506,   # rad (86.0 deg, the design bound)
+    "stage1_alpha_0": 0.04151953872928711,              # rad
+    "stage1_alpha_quadratic": 0.3310328204616789,       # rad
+    "stage1_alpha_linear": -0.34906585383018535,        # rad
+    "stage2_alpha_0": 0.1481464908231482,               # rad
+    "stage2_alpha_rate": -0.003490658531949411,         # rad/s
+    "stage2_mass_flow": 34.85829296568308,              # kg/s (Table 1: 36.8)
 }
-GUIDANCE_PARAMS = ("stage1_alpha_quadratic", "stage1_alpha_linear", "stage2_alpha_0",
+GUIDANCE_PARAMS = ("stage1_alpha_0", "stage1_alpha_quadratic", "stage1_alpha_linear", "stage2_alpha_0",
                    "stage2_alpha_rate", "stage2_mass_flow")
 
 
@@ -173,9 +176,10 @@ def _propulsion(t, stage2_mass_flow):
     return thrust, mass, np.pi / 4 * diameter**2
 
 
-def _angle_of_attack(t, a1, a2, b0, b1):
+def _angle_of_attack(t, a0, a1, a2, b0, b1):
     """The guidance law (our design, module docstring): alpha(t) in rad."""
-    stage1 = (1 - _step(t, T_STAGE1_BURNOUT)) * (a1 * (t / T_STAGE1_BURNOUT) ** 2 + a2 * t / T_STAGE1_BURNOUT)
+    tau = t / T_STAGE1_BURNOUT
+    stage1 = (1 - _step(t, T_STAGE1_BURNOUT)) * (a0 + a1 * tau**2 + a2 * tau)
     stage2 = _step(t, T_STAGE2_IGNITION) * (b0 + b1 * (t - T_STAGE2_IGNITION))
     return stage1 + stage2
 
@@ -200,7 +204,8 @@ def build() -> Model:
     r = m.state("r", "m", "distance from the Earth's centre")
     theta = m.state("theta", "rad", "longitude")
     phi = m.state("phi", "rad", "geocentric latitude")
-    a1, a2, b0, b1, flow2 = (m.param(name, unit, desc, GUIDANCE[name]) for name, unit, desc in (
+    a0, a1, a2, b0, b1, flow2 = (m.param(name, unit, desc, GUIDANCE[name]) for name, unit, desc in (
+        ("stage1_alpha_0", "rad", "stage-1 angle of attack at lift-off"),
         ("stage1_alpha_quadratic", "rad", "stage-1 angle of attack, coefficient of (t/t1)^2"),
         ("stage1_alpha_linear", "rad", "stage-1 angle of attack, coefficient of t/t1"),
         ("stage2_alpha_0", "rad", "stage-2 angle of attack at ignition"),
@@ -209,7 +214,7 @@ def build() -> Model:
     t = m.t
 
     thrust, mass, area = _propulsion(t, flow2)
-    alpha = _angle_of_attack(t, a1, a2, b0, b1)
+    alpha = _angle_of_attack(t, a0, a1, a2, b0, b1)
     drag, lift = _aerodynamics(V, r, alpha, area)
     force_tangential = thrust * ca.cos(alpha) - drag          # eq (5)
     force_normal = thrust * ca.sin(alpha) + lift              # eq (5)

@@ -119,15 +119,15 @@ C_LOOP = r"""
 #include <stdio.h>
 #include <time.h>
 #include "launcher.h"
-/* stdin: x0[6] P0[36] Q[36] R[9] kappa p[5] n_base, n_base lines t z[3] q[2]; argv[1]: ekf|ukf, argv[2]: steps */
+/* stdin: x0[6] P0[36] Q[36] R[9] kappa p[6] n_base, n_base lines t z[3] q[2]; argv[1]: ekf|ukf, argv[2]: steps */
 static double now(void) { struct timespec ts; clock_gettime(CLOCK_MONOTONIC, &ts); return ts.tv_sec + 1e-9 * ts.tv_nsec; }
 static int rd(double *v, int n) { int i; for (i = 0; i < n; ++i) if (scanf("%lf", &v[i]) != 1) return 0; return 1; }
 static double T[20000], Z[60000], QS[40000];
 int main(int argc, char **argv) {
-  double x0[6], P0[36], x[6], P[36], Q[36], R[9], kappa, p[5], y[3], S[9], u[1], mask[3] = {1, 1, 1};
+  double x0[6], P0[36], x[6], P[36], Q[36], R[9], kappa, p[6], y[3], S[9], u[1], mask[3] = {1, 1, 1};
   double dt = 0.05, batches[1000], start;
   int n, i, k, b, nb, steps, ukf, code = 0;
-  if (argc < 3 || !rd(x0, 6) || !rd(P0, 36) || !rd(Q, 36) || !rd(R, 9) || !rd(&kappa, 1) || !rd(p, 5)) return 2;
+  if (argc < 3 || !rd(x0, 6) || !rd(P0, 36) || !rd(Q, 36) || !rd(R, 9) || !rd(&kappa, 1) || !rd(p, 6)) return 2;
   ukf = argv[1][0] == 'u';
   if (sscanf(argv[2], "%d", &steps) != 1 || scanf("%d", &n) != 1 || n > 20000) return 2;
   for (i = 0; i < n; ++i) if (!rd(&T[i], 1) || !rd(&Z[3 * i], 3) || !rd(&QS[2 * i], 2)) return 2;

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from ..models import launcher as L
+from . import launcher_campaign as C
 from .launcher_campaign import FILTERS, STATE_NAMES, TUNING, Campaign, CaseResult, consistency
 
 UNITS = dict(zip(STATE_NAMES, L.TABLE3_UNITS))
@@ -113,6 +114,11 @@ def markdown_table(results: list[CaseResult], rows: list[dict]) -> str:
             row = next(r for r in rows if r["state"] == state and r["case"] == case)
             cells += [f"{row['ekf']:.3g} ({row['paper_ekf']:.3g})", f"{row['ukf']:.3g} ({row['paper_ukf']:.3g})"]
         lines.append(f"| {state} ({UNITS[state]}) | " + " | ".join(cells) + " |")
+    diverged = [f"{r.case.label} {family.upper()}: runs {r.diverged_runs[family]}" for r in results
+                for family in FILTERS if r.diverged_runs[family]]
+    runs = results[0].errors["ekf"].runs
+    lines += ["", f"Diverged runs (an angle error above {C.DIVERGED_ANGLE_RAD} rad at any time), of {runs}: "
+              + ("; ".join(diverged) if diverged else "none")]
     return "\n".join(lines) + "\n"
 
 
@@ -129,6 +135,7 @@ def make_summary(results: list[CaseResult], args, wall: float) -> dict:
                 "steps": int(len(result.times) * result.errors[family].runs),
                 "us_per_step_in_run": 1e6 * result.wall_s[family] / (len(result.times) * result.errors[family].runs),
                 "failed_steps": result.failed_steps[family],
+                "diverged_runs": result.diverged_runs[family],
             }
         cases[result.case.label] = entry
     return {"runs": args.runs, "seed": args.seed, "duration_s": args.duration, "wall_s": wall,

@@ -38,6 +38,7 @@ TUNING = {
 }
 FILTERS = ("ekf", "ukf")
 NEES_STRIDE = 5          # NEES every 5th step (0.25 s at 20 Hz): plotted, not tabulated
+DIVERGED_ANGLE_RAD = 0.1  # a run whose angle error ever exceeds 0.1 rad (5.7 deg) has diverged
 
 
 @dataclass(frozen=True)
@@ -59,6 +60,7 @@ class CaseResult:
     errors: dict[str, ErrorAccumulator]
     wall_s: dict[str, float] = field(default_factory=dict)
     failed_steps: dict[str, int] = field(default_factory=dict)
+    diverged_runs: dict[str, list[int]] = field(default_factory=dict)
 
     def rms_in_table_units(self, family: str) -> np.ndarray:
         """RMS per time, angles converted to degrees (Table 3's units)."""
@@ -99,14 +101,16 @@ class Campaign:
             truth = propagate(times)
             track = radar_track(times, truth)
             result = CaseResult(case, times, {f: ErrorAccumulator(len(times), 6, NEES_STRIDE) for f in FILTERS},
-                                {f: 0.0 for f in FILTERS}, {f: 0 for f in FILTERS})
+                                {f: 0.0 for f in FILTERS}, {f: 0 for f in FILTERS}, {f: [] for f in FILTERS})
             with ThreadPoolExecutor(self.workers) as pool:
                 jobs = [pool.submit(self._one_run, case, index, run, truth, track) for run in range(self.runs)]
-                for job in jobs:
-                    for family, (squared_error, nees_values, failed, wall) in job.result().items():
+                for run, job in enumerate(jobs):
+                    for family, (squared_error, nees_values, failed, wall, diverged) in job.result().items():
                         result.errors[family].add_run(squared_error, nees_values)
                         result.wall_s[family] += wall
                         result.failed_steps[family] += failed
+                        if diverged:
+                            result.diverged_runs[family].append(run)
                     done += 1
                     self.progress(done, total)
             results.append(result)
@@ -128,7 +132,8 @@ class Campaign:
             wall = time.perf_counter() - start
             error = truth - result.x
             outputs[family] = (error**2, nees(error[::NEES_STRIDE], result.P[::NEES_STRIDE]),
-                               int(np.count_nonzero(result.status)), wall)
+                               int(np.count_nonzero(result.status)), wall,
+                               bool(np.max(np.abs(error[:, ANGLE_STATES])) > DIVERGED_ANGLE_RAD))
         return outputs
 
 

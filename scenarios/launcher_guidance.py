@@ -22,9 +22,10 @@ from .launcher_truth import PHASES, _phase_integrator
 
 UNKNOWNS = ("initial_flight_path_angle",) + L.GUIDANCE_PARAMS
 #: The NLP works in degrees, degrees per 100 s and kg/s so that every unknown is of order 1-100.
-SCALE = np.array([L.DEG, L.DEG, L.DEG, L.DEG, L.DEG / 100.0, 1.0])
-LOWER = [80.0, -20.0, -20.0, -20.0, -20.0, 20.0]
-UPPER = [89.9, 20.0, 20.0, 20.0, 20.0, 60.0]
+SCALE = np.array([L.DEG, L.DEG, L.DEG, L.DEG, L.DEG, L.DEG / 100.0, 1.0])
+#: gamma_0 at most 86 deg keeps the heading observable from lift-off (see models/launcher.py).
+LOWER = [75.0, -20.0, -20.0, -20.0, -20.0, -20.0, 20.0]
+UPPER = [86.0, 20.0, 20.0, 20.0, 20.0, 20.0, 60.0]
 
 
 def _event_states(w: ca.MX) -> list[ca.MX]:

@@ -15,13 +15,13 @@ from symkf.scenarios.launcher_truth import propagate, radar_track
 HARNESS = r"""
 #include <stdio.h>
 #include "launcher.h"
-/* stdin: x0[6] P0[36] Q[36] R[9] kappa p[5] n, then n lines: t dt q[2] z[3] mask[3]; stdout: x per step */
+/* stdin: x0[6] P0[36] Q[36] R[9] kappa p[6] n, then n lines: t dt q[2] z[3] mask[3]; stdout: x per step */
 static int read(double *v, int n) { int i; for (i = 0; i < n; ++i) if (scanf("%lf", &v[i]) != 1) return 0; return 1; }
 int main(int argc, char **argv) {
-  double x[6], P[36], Q[36], R[9], kappa, p[5], t, dt, q[2], z[3], mask[3], y[3], S[9], u[1];
+  double x[6], P[36], Q[36], R[9], kappa, p[6], t, dt, q[2], z[3], mask[3], y[3], S[9], u[1];
   int n, k, i, code, ukf = argc > 1;
   (void)argv;
-  if (!read(x, 6) || !read(P, 36) || !read(Q, 36) || !read(R, 9) || !read(&kappa, 1) || !read(p, 5)) return 2;
+  if (!read(x, 6) || !read(P, 36) || !read(Q, 36) || !read(R, 9) || !read(&kappa, 1) || !read(p, 6)) return 2;
   if (scanf("%d", &n) != 1) return 2;
   for (k = 0; k < n; ++k) {
     if (!read(&t, 1) || !read(&dt, 1) || !read(q, 2) || !read(z, 3) || !read(mask, 3)) return 2;
