@@ -1,0 +1,166 @@
+"""Continuous-discrete EKF ("cd_ekf"), paper 003 Table 1 (Lewis 1986), for any model.
+
+Time update: the estimate and the covariance are integrated *together* over [t, t + dt],
+
+    xhat' = a(xhat, u, t),     P' = A(xhat) P + P A(xhat)^T + G Q G^T,   A = da/dx,
+
+with RK4 (``model.codegen_defaults["rk4_substeps"]`` sub-steps, inputs held: zero-order hold).
+G = I: ``Q`` is the n x n power spectral density of an additive noise on every state. A is
+derived by CasADi and kept *sparse*: A P costs nnz(A) n multiplications, not n^3. Only the
+upper triangle of P (n(n+1)/2 numbers) is integrated, since P' is symmetric by construction.
+
+Measurement update (discrete, at each sensor's own rate): with U = H P (H sparse, masked rows 0),
+
+    S = U H^T + R,  K = U^T S^-1,  P+ = P - K U  (= (I - K H) P of Table 1),
+    xhat+ = xhat + K (z - h(xhat)).
+
+P+ is computed on its upper triangle and mirrored (exactly symmetric), O(n^2 m) instead of the
+O(n^3) of a matrix product (I - K H) P. Masks as in :mod:`symkf.codegen.filters`: a masked component contributes exactly
+nothing, all masked leaves x and P bit-for-bit unchanged (K = 0). A non-PD S returns NOT_PD.
+
+C size: the augmented derivative (x', P') is one never-inlined function, called by a
+never-inlined RK4 step, called once per sub-step; each update is its own function. So the
+generated C grows with nnz(A) n + n^2 m, never with n^3 or with the number of sub-steps.
+
+Kernels: ``cd_ekf_predict``, ``cd_ekf_update_<meas>``, ``cd_ekf_step_<meas>`` (predict + update).
+"""
+from __future__ import annotations
+
+import casadi as ca
+
+from ...models.base import Model
+from .. import linalg
+from ..discretize import FUNCTION_OPTIONS, continuous_dynamics
+from ..filters import (Kernel, ModelFunctions, Symbols, _innovation, _masked_noise, compose_step, make_kernel,
+                       register_family)
+from ..spec import STATUS_NOT_PD
+
+FAMILY = "cd_ekf"
+_CALLED = dict(FUNCTION_OPTIONS, never_inline=True)
+
+
+def upper_triangle(P: ca.SX) -> ca.SX:
+    """The n(n+1)/2 upper-triangle entries of P, column by column."""
+    n = P.shape[0]
+    return ca.vertcat(*[P[i, j] for j in range(n) for i in range(j + 1)])
+
+
+def from_upper_triangle(v: ca.SX, n: int) -> ca.SX:
+    """The symmetric matrix whose upper triangle (column by column) is v."""
+    P = ca.SX(n, n)
+    k = 0
+    for j in range(n):
+        for i in range(j + 1):
+            P[i, j] = v[k]
+            P[j, i] = v[k]
+            k += 1
+    return P
+
+
+def augmented_derivative(model: Model) -> ca.Function:
+    """(t, x, Ptri, u, p, Q) -> (a(x), triu(A P + P A^T + Q)) with A = da/dx sparse."""
+    n = model.nx
+    f = continuous_dynamics(model)
+    t, x, u, p = ca.SX.sym("t"), ca.SX.sym("x", n), ca.SX.sym("u", model.u.shape[0]), ca.SX.sym("p", model.p.shape[0])
+    ptri, Q = ca.SX.sym("Ptri", n * (n + 1) // 2), ca.SX.sym("Q", n, n)
+    xdot = f(t, x, u, p, ca.DM.zeros(model.w.shape[0]))
+    A = ca.jacobian(xdot, x)                       # sparse: only structural non-zeros multiply
+    AP = A @ from_upper_triangle(ptri, n)
+    pdot = upper_triangle(AP + AP.T + Q)
+    return ca.Function(f"{model.name}_cd_derivative", [t, x, ptri, u, p, Q], [xdot, pdot],
+                       ["t", "x", "Ptri", "u", "p", "Q"], ["xdot", "Ptri_dot"], _CALLED)
+
+
+def rk4_step(model: Model, derivative: ca.Function) -> ca.Function:
+    """One RK4 step of the augmented system over h (inputs held)."""
+    n, sym = model.nx, ca.MX.sym        # MX: the vector algebra becomes C loops, not unrolled lines
+    t, h, x = sym("t"), sym("h"), sym("x", n)
+    ptri, Q = sym("Ptri", n * (n + 1) // 2), sym("Q", n, n)
+    u, p = sym("u", model.u.shape[0]), sym("p", model.p.shape[0])
+    k1x, k1p = derivative(t, x, ptri, u, p, Q)
+    k2x, k2p = derivative(t + h / 2, x + h / 2 * k1x, ptri + h / 2 * k1p, u, p, Q)
+    k3x, k3p = derivative(t + h / 2, x + h / 2 * k2x, ptri + h / 2 * k2p, u, p, Q)
+    k4x, k4p = derivative(t + h, x + h * k3x, ptri + h * k3p, u, p, Q)
+    x_next = x + h / 6 * (k1x + 2 * k2x + 2 * k3x + k4x)
+    p_next = ptri + h / 6 * (k1p + 2 * k2p + 2 * k3p + k4p)
+    return ca.Function(f"{model.name}_cd_rk4", [t, h, x, ptri, u, p, Q], [x_next, p_next],
+                       ["t", "h", "x", "Ptri", "u", "p", "Q"], ["x", "Ptri"],
+                       {"allow_duplicate_io_names": True, "never_inline": True})
+
+
+def predict_expr(model: Model, symbols: Symbols, substeps: int):
+    """x and P at t + dt from x, P at t (Table 1 time update)."""
+    if substeps < 1:
+        raise ValueError(f"{FAMILY}: rk4_substeps must be >= 1, got {substeps}")
+    s = symbols.sym
+    step = rk4_step(model, augmented_derivative(model))
+    h = s["dt"] / substeps
+    x, ptri = s["x"], upper_triangle(s["P"])     # P is symmetric: its upper triangle is all of it
+    for i in range(substeps):
+        x, ptri = step(s["t"] + i * h, h, x, ptri, s["u"], s["p"], s["Q"])
+    return x, from_upper_triangle(ptri, model.nx)
+
+
+def measurement_jacobian(model: Model, name: str) -> ca.Function:
+    """h and its sparse Jacobian H = dh/dx of one measurement (inlined into the update)."""
+    meas = model.measurements[name]
+    args = [model.t, model.x, model.u, model.p, meas.q]
+    return ca.Function(f"h_and_H_{name}", args, [meas.h, ca.jacobian(meas.h, model.x)],
+                       ["t", "x", "u", "p", "q"], ["z", "H"])
+
+
+def update_expr(model: Model, symbols: Symbols, name: str, msym: dict):
+    """Table 1 measurement update, masked (see module docstring)."""
+    s = symbols.sym
+    mask, R = msym["mask"], _masked_noise(msym["R"], msym["mask"])
+    z_pred, H = measurement_jacobian(model, name)(s["t"], s["x"], s["u"], s["p"], msym["q"])
+    H = ca.diag(mask) @ H
+    P = from_upper_triangle(upper_triangle(s["P"]), model.nx)   # symmetric by construction, no flops
+    U = H @ P                                         # m x n
+    S = linalg.symmetrize(U @ H.T + R)
+    L, ok = linalg.cholesky(S)
+    K = linalg.cholesky_solve(L, U).T                 # n x m, = P H^T S^-1
+    P_new = symmetric_product_update(P, K, U)
+    y = _innovation(msym["z"], z_pred, mask, model.measurements[name].wrap)
+    return s["x"] + K @ y, P_new, y, S, ok
+
+
+def symmetric_product_update(P: ca.SX, K: ca.SX, U: ca.SX) -> ca.SX:
+    """P - K U (= (I - K H) P, Table 1), evaluated on the upper triangle and mirrored."""
+    n = P.shape[0]
+    tri = ca.vertcat(*[P[i, j] - K[i, :] @ U[:, j] for j in range(n) for i in range(j + 1)])
+    return from_upper_triangle(tri, n)
+
+
+def _update_outputs_unguarded(update) -> list[tuple[str, ca.SX]]:
+    """Outputs without per-element selects: on a non-zero status the C wrapper (and the VM
+    backend) write no output at all, so x and P stay unchanged without 2 n^2 if_else nodes."""
+    x_new, P_new, y, S, ok = update
+    return [("x", x_new), ("P", P_new), ("y", y), ("S", S), ("status", linalg.select(ok, 0, STATUS_NOT_PD))]
+
+
+def _substeps(model: Model) -> int:
+    return int(model.codegen_defaults.get("rk4_substeps", 1))
+
+
+def cd_ekf_kernels(model: Model, symbols: Symbols, functions: ModelFunctions) -> list[Kernel]:
+    """The continuous-discrete EKF of Table 1 for ``model`` (any model: nothing here is GEO-specific)."""
+    s = symbols.sym
+    x_pred, P_pred = predict_expr(model, symbols, _substeps(model))
+    predict = make_kernel(f"{FAMILY}_predict",
+                          "Continuous-discrete EKF time update t -> t + dt: x' = a(x), P' = A P + P A^T + Q "
+                          f"integrated together (RK4, {_substeps(model)} sub-step(s)).",
+                          symbols, {}, {}, ["t", "dt", "x", "P", "u", "p", "Q"],
+                          [("x", x_pred), ("P", P_pred), ("status", ca.SX(0))])
+    kernels = [predict]
+    for name in model.measurements:
+        msym, marg = symbols.measurement(name)
+        update = make_kernel(f"{FAMILY}_update_{name}",
+                             f"Continuous-discrete EKF update with '{name}' at time t (masked, P = (I - K H) P).",
+                             symbols, msym, marg, ["t", "x", "P", "u", "p", "q", "z", "mask", "R"],
+                             _update_outputs_unguarded(update_expr(model, symbols, name, msym)))
+        kernels += [update, compose_step(f"{FAMILY}_step_{name}", predict, update)]
+    return kernels
+
+
+register_family(FAMILY, cd_ekf_kernels)
