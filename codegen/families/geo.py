@@ -164,3 +164,18 @@ def cd_ekf_kernels(model: Model, symbols: Symbols, functions: ModelFunctions) ->
 
 
 register_family(FAMILY, cd_ekf_kernels)
+
+
+def reference_functions(model: Model) -> dict[str, ca.Function]:
+    """Numeric CasADi Functions for a NumPy reference of this family: a(x), dense A = da/dx, and
+    per measurement h and dense H (the same symbolic sources as the generated kernels)."""
+    f = continuous_dynamics(model)
+    xdot = f(model.t, model.x, model.u, model.p, ca.DM.zeros(model.w.shape[0]))
+    names = ["t", "x", "u", "p"]
+    functions = {"a": ca.Function("a", [model.t, model.x, model.u, model.p], [xdot], names, ["xdot"]),
+                 "A": ca.Function("A", [model.t, model.x, model.u, model.p], [ca.densify(ca.jacobian(xdot, model.x))],
+                                  names, ["A"])}
+    for name in model.measurements:
+        h_and_H = measurement_jacobian(model, name)
+        functions[f"h_{name}"] = h_and_H
+    return functions
