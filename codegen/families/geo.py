@@ -14,13 +14,16 @@ Measurement update (discrete, at each sensor's own rate): with U = H P (H sparse
     S = U H^T + R,  K = U^T S^-1,  P+ = P - K U  (= (I - K H) P of Table 1),
     xhat+ = xhat + K (z - h(xhat)).
 
-P+ is computed on its upper triangle and mirrored (exactly symmetric), O(n^2 m) instead of the
-O(n^3) of a matrix product (I - K H) P. Masks as in :mod:`symkf.codegen.filters`: a masked component contributes exactly
-nothing, all masked leaves x and P bit-for-bit unchanged (K = 0). A non-PD S returns NOT_PD.
+P+ = P - K U costs O(n^2 m) instead of the O(n^3) of (I - K H) P, and is symmetrised. Masks as
+in :mod:`symkf.codegen.filters`: a masked component contributes exactly nothing, all masked
+leaves x and P bit-for-bit unchanged (K = 0). A non-PD S returns NOT_PD (and writes nothing).
 
-C size: the augmented derivative (x', P') is one never-inlined function, called by a
-never-inlined RK4 step, called once per sub-step; each update is its own function. So the
-generated C grows with nnz(A) n + n^2 m, never with n^3 or with the number of sub-steps.
+C size and compile time: the augmented derivative (x', P') is one never-inlined SX function
+(sparse A P unrolled, the only place where unrolling pays), called by a never-inlined RK4 step
+written in MX, whose vector algebra becomes C loops. The updates are MX too: the small parts
+(h, sparse H, masked R, innovation, the m x m Cholesky gain) are never-inlined SX functions and
+the n x n algebra (H P, K U) is CasADi's sparse matrix-product loop. So the generated C grows with
+nnz(A) n, not with n^3, the number of sub-steps or the number of sensors times n^2.
 
 Kernels: ``cd_ekf_predict``, ``cd_ekf_update_<meas>``, ``cd_ekf_step_<meas>`` (predict + update).
 """
@@ -31,9 +34,8 @@ import casadi as ca
 from ...models.base import Model
 from .. import linalg
 from ..discretize import FUNCTION_OPTIONS, continuous_dynamics
-from ..filters import (Kernel, ModelFunctions, Symbols, _innovation, _masked_noise, compose_step, make_kernel,
-                       register_family)
-from ..spec import STATUS_NOT_PD
+from ..filters import ModelFunctions, Symbols, _innovation, _masked_noise, compose_step, make_kernel, register_family
+from ..spec import STATUS_NOT_PD, Kernel
 
 FAMILY = "cd_ekf"
 _CALLED = dict(FUNCTION_OPTIONS, never_inline=True)
@@ -109,34 +111,47 @@ def measurement_jacobian(model: Model, name: str) -> ca.Function:
                        ["t", "x", "u", "p", "q"], ["z", "H"])
 
 
-def update_expr(model: Model, symbols: Symbols, name: str, msym: dict):
-    """Table 1 measurement update, masked (see module docstring)."""
-    s = symbols.sym
-    mask, R = msym["mask"], _masked_noise(msym["R"], msym["mask"])
-    z_pred, H = measurement_jacobian(model, name)(s["t"], s["x"], s["u"], s["p"], msym["q"])
-    H = ca.diag(mask) @ H
-    P = from_upper_triangle(upper_triangle(s["P"]), model.nx)   # symmetric by construction, no flops
-    U = H @ P                                         # m x n
-    S = linalg.symmetrize(U @ H.T + R)
-    L, ok = linalg.cholesky(S)
-    K = linalg.cholesky_solve(L, U).T                 # n x m, = P H^T S^-1
-    P_new = symmetric_product_update(P, K, U)
-    y = _innovation(msym["z"], z_pred, mask, model.measurements[name].wrap)
-    return s["x"] + K @ y, P_new, y, S, ok
+def measurement_terms(model: Model, name: str) -> ca.Function:
+    """(t, x, u, p, q, z, mask, R) -> masked sparse H, masked R, innovation y (small, SX)."""
+    meas = model.measurements[name]
+    m, n = meas.size, model.nx
+    t, x, u, p = ca.SX.sym("t"), ca.SX.sym("x", n), ca.SX.sym("u", model.u.shape[0]), ca.SX.sym("p", model.p.shape[0])
+    q, z, mask, R = ca.SX.sym("q", meas.q.shape[0]), ca.SX.sym("z", m), ca.SX.sym("mask", m), ca.SX.sym("R", m, m)
+    z_pred, H = measurement_jacobian(model, name)(t, x, u, p, q)
+    y = _innovation(z, z_pred, mask, meas.wrap)
+    return ca.Function(f"{model.name}_cd_terms_{name}", [t, x, u, p, q, z, mask, R],
+                       [ca.diag(mask) @ H, _masked_noise(R, mask), y],
+                       ["t", "x", "u", "p", "q", "z", "mask", "R"], ["H", "R", "y"], _CALLED)
 
 
-def symmetric_product_update(P: ca.SX, K: ca.SX, U: ca.SX) -> ca.SX:
-    """P - K U (= (I - K H) P, Table 1), evaluated on the upper triangle and mirrored."""
-    n = P.shape[0]
-    tri = ca.vertcat(*[P[i, j] - K[i, :] @ U[:, j] for j in range(n) for i in range(j + 1)])
-    return from_upper_triangle(tri, n)
+def kalman_gain(n: int, m: int, prefix: str) -> ca.Function:
+    """(S, U) -> K = U^T S^-1 by Cholesky, and a 0/1 flag that S was positive definite."""
+    S, U = ca.SX.sym("S", m, m), ca.SX.sym("U", m, n)
+    L, ok = linalg.cholesky(linalg.symmetrize(S))
+    return ca.Function(f"{prefix}_cd_gain_{n}x{m}", [S, U], [linalg.cholesky_solve(L, U).T, ok],
+                       ["S", "U"], ["K", "ok"], _CALLED)
 
 
-def _update_outputs_unguarded(update) -> list[tuple[str, ca.SX]]:
-    """Outputs without per-element selects: on a non-zero status the C wrapper (and the VM
-    backend) write no output at all, so x and P stay unchanged without 2 n^2 if_else nodes."""
-    x_new, P_new, y, S, ok = update
-    return [("x", x_new), ("P", P_new), ("y", y), ("S", S), ("status", linalg.select(ok, 0, STATUS_NOT_PD))]
+def update_function(model: Model, name: str) -> ca.Function:
+    """Table 1 measurement update, masked (see module docstring), as an MX function: the
+    n x n algebra (U = H P with H sparse, P - K U) is emitted as C loops, not unrolled."""
+    meas = model.measurements[name]
+    n, m = model.nx, meas.size
+    sym = ca.MX.sym
+    t, x, P, u, p = sym("t"), sym("x", n), sym("P", n, n), sym("u", model.u.shape[0]), sym("p", model.p.shape[0])
+    q, z, mask, R = sym("q", meas.q.shape[0]), sym("z", m), sym("mask", m), sym("R", m, m)
+    H, R_masked, y = measurement_terms(model, name)(t, x, u, p, q, z, mask, R)
+    U = ca.mtimes(H, P)                                   # m x n, only H's non-zeros multiply
+    S = ca.mtimes(U, H.T) + R_masked
+    S = 0.5 * (S + S.T)
+    K, ok = kalman_gain(n, m, model.name)(S, U)           # n x m = P H^T S^-1
+    P_new = P - ca.mtimes(K, U)                           # (I - K H) P
+    P_new = 0.5 * (P_new + P_new.T)
+    status = ca.if_else(ok, 0, STATUS_NOT_PD)
+    names = ["t", "x", "P", "u", "p", "q", "z", "mask", "R"]
+    return ca.Function(f"{model.name}_k_{FAMILY}_update_{name}", [t, x, P, u, p, q, z, mask, R],
+                       [x + ca.mtimes(K, y), P_new, y, S, status], names, ["x", "P", "y", "S", "status"],
+                       {"allow_duplicate_io_names": True})
 
 
 def _substeps(model: Model) -> int:
@@ -154,11 +169,13 @@ def cd_ekf_kernels(model: Model, symbols: Symbols, functions: ModelFunctions) ->
                           [("x", x_pred), ("P", P_pred), ("status", ca.SX(0))])
     kernels = [predict]
     for name in model.measurements:
-        msym, marg = symbols.measurement(name)
-        update = make_kernel(f"{FAMILY}_update_{name}",
-                             f"Continuous-discrete EKF update with '{name}' at time t (masked, P = (I - K H) P).",
-                             symbols, msym, marg, ["t", "x", "P", "u", "p", "q", "z", "mask", "R"],
-                             _update_outputs_unguarded(update_expr(model, symbols, name, msym)))
+        _, marg = symbols.measurement(name)
+        args = {**symbols.arg, **marg}
+        update = Kernel(f"{FAMILY}_update_{name}",
+                        update_function(model, name),
+                        f"Continuous-discrete EKF update with '{name}' at time t (masked, P = (I - K H) P).",
+                        tuple(args[a] for a in ("t", "x", "P", "u", "p", "q", "z", "mask", "R")),
+                        tuple(args[a] for a in ("x", "P", "y", "S", "status")))
         kernels += [update, compose_step(f"{FAMILY}_step_{name}", predict, update)]
     return kernels
 
