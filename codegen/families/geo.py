@@ -34,7 +34,7 @@ import casadi as ca
 from ...models.base import Model
 from .. import linalg
 from ..discretize import FUNCTION_OPTIONS, continuous_dynamics
-from ..filters import ModelFunctions, Symbols, _innovation, _masked_noise, compose_step, make_kernel, register_family
+from ..filters import ModelFunctions, Symbols, _innovation, _masked_noise, compose_step, register_family
 from ..spec import STATUS_NOT_PD, Kernel
 
 FAMILY = "cd_ekf"
@@ -90,17 +90,32 @@ def rk4_step(model: Model, derivative: ca.Function) -> ca.Function:
                        {"allow_duplicate_io_names": True, "never_inline": True})
 
 
-def predict_expr(model: Model, symbols: Symbols, substeps: int):
-    """x and P at t + dt from x, P at t (Table 1 time update)."""
+def triangle_indices(n: int) -> tuple[list[int], list[int]]:
+    """Column-major positions of P's upper triangle, and for each of P's n^2 entries the
+    position of its upper-triangle twin (so the full P is a gather, not n^2 assignments)."""
+    upper = [i + j * n for j in range(n) for i in range(j + 1)]
+    where = {(i, j): k for k, (i, j) in enumerate((i, j) for j in range(n) for i in range(j + 1))}
+    full = [where[(min(i, j), max(i, j))] for j in range(n) for i in range(n)]
+    return upper, full
+
+
+def predict_function(model: Model, substeps: int) -> ca.Function:
+    """x and P at t + dt from x, P at t (Table 1 time update), as an MX function."""
     if substeps < 1:
         raise ValueError(f"{FAMILY}: rk4_substeps must be >= 1, got {substeps}")
-    s = symbols.sym
+    n, sym = model.nx, ca.MX.sym
+    t, dt, x0, P = sym("t"), sym("dt"), sym("x", n), sym("P", n, n)
+    u, p, Q = sym("u", model.u.shape[0]), sym("p", model.p.shape[0]), sym("Q", n, n)
     step = rk4_step(model, augmented_derivative(model))
-    h = s["dt"] / substeps
-    x, ptri = s["x"], upper_triangle(s["P"])     # P is symmetric: its upper triangle is all of it
+    upper, full = triangle_indices(n)
+    h = dt / substeps
+    x, ptri = x0, ca.vec(P)[upper]              # P is symmetric: its upper triangle is all of it
     for i in range(substeps):
-        x, ptri = step(s["t"] + i * h, h, x, ptri, s["u"], s["p"], s["Q"])
-    return x, from_upper_triangle(ptri, model.nx)
+        x, ptri = step(t + i * h, h, x, ptri, u, p, Q)
+    names = ["t", "dt", "x", "P", "u", "p", "Q"]
+    return ca.Function(f"{model.name}_k_{FAMILY}_predict", [t, dt, x0, P, u, p, Q],
+                       [x, ca.reshape(ptri[full], n, n), ca.MX(0)], names, ["x", "P", "status"],
+                       {"allow_duplicate_io_names": True})
 
 
 def measurement_jacobian(model: Model, name: str) -> ca.Function:
@@ -132,7 +147,7 @@ def kalman_gain(n: int, m: int, prefix: str) -> ca.Function:
                        ["S", "U"], ["K", "ok"], _CALLED)
 
 
-def update_function(model: Model, name: str) -> ca.Function:
+def update_function(model: Model, name: str, gain: ca.Function) -> ca.Function:
     """Table 1 measurement update, masked (see module docstring), as an MX function: the
     n x n algebra (U = H P with H sparse, P - K U) is emitted as C loops, not unrolled."""
     meas = model.measurements[name]
@@ -144,7 +159,7 @@ def update_function(model: Model, name: str) -> ca.Function:
     U = ca.mtimes(H, P)                                   # m x n, only H's non-zeros multiply
     S = ca.mtimes(U, H.T) + R_masked
     S = 0.5 * (S + S.T)
-    K, ok = kalman_gain(n, m, model.name)(S, U)           # n x m = P H^T S^-1
+    K, ok = gain(S, U)                                    # n x m = P H^T S^-1 (shared per m)
     P_new = P - ca.mtimes(K, U)                           # (I - K H) P
     P_new = 0.5 * (P_new + P_new.T)
     status = ca.if_else(ok, 0, STATUS_NOT_PD)
@@ -160,19 +175,19 @@ def _substeps(model: Model) -> int:
 
 def cd_ekf_kernels(model: Model, symbols: Symbols, functions: ModelFunctions) -> list[Kernel]:
     """The continuous-discrete EKF of Table 1 for ``model`` (any model: nothing here is GEO-specific)."""
-    s = symbols.sym
-    x_pred, P_pred = predict_expr(model, symbols, _substeps(model))
-    predict = make_kernel(f"{FAMILY}_predict",
-                          "Continuous-discrete EKF time update t -> t + dt: x' = a(x), P' = A P + P A^T + Q "
-                          f"integrated together (RK4, {_substeps(model)} sub-step(s)).",
-                          symbols, {}, {}, ["t", "dt", "x", "P", "u", "p", "Q"],
-                          [("x", x_pred), ("P", P_pred), ("status", ca.SX(0))])
+    substeps = _substeps(model)
+    predict = Kernel(f"{FAMILY}_predict", predict_function(model, substeps),
+                     "Continuous-discrete EKF time update t -> t + dt: x' = a(x), P' = A P + P A^T + Q "
+                     f"integrated together (RK4, {substeps} sub-step(s)).",
+                     tuple(symbols.arg[a] for a in ("t", "dt", "x", "P", "u", "p", "Q")),
+                     tuple(symbols.arg[a] for a in ("x", "P", "status")))
+    gains = {m: kalman_gain(model.nx, m, model.name) for m in {meas.size for meas in model.measurements.values()}}
     kernels = [predict]
     for name in model.measurements:
         _, marg = symbols.measurement(name)
         args = {**symbols.arg, **marg}
         update = Kernel(f"{FAMILY}_update_{name}",
-                        update_function(model, name),
+                        update_function(model, name, gains[model.measurements[name].size]),
                         f"Continuous-discrete EKF update with '{name}' at time t (masked, P = (I - K H) P).",
                         tuple(args[a] for a in ("t", "x", "P", "u", "p", "q", "z", "mask", "R")),
                         tuple(args[a] for a in ("x", "P", "y", "S", "status")))
