@@ -160,8 +160,8 @@ def build(units: str = "paper") -> Model:
     name = "geo_satellite" if units == "paper" else f"geo_satellite_{units}"
     m = Model(name, "Koreasat-3 attitude: PID integral states, Euler angles, rates, pyramid wheels, "
               "skewed gyros with biases", paper="003 (Park 2005, J. Astron. Space Sci. 22(2))")
-    integral = ca.vertcat(*[m.state(f"int_{a}", "rad s", f"time integral of {a} (PID integral state)")
-                            for a in ANGLE_NAMES])
+    for a in ANGLE_NAMES:                                   # d/dt int_a = a, set below
+        m.state(f"int_{a}", "rad s", f"time integral of {a} (PID integral state)")
     angle = ca.vertcat(*[m.state(a, "rad", d) for a, d in
                          zip(ANGLE_NAMES, ("yaw angle (x axis)", "roll angle (y axis)", "pitch angle (z axis)"))])
     omega = ca.vertcat(*[m.state(f"omega_{a}", "rad/s", f"body rate about {a}") for a in "xyz"])

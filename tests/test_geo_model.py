@@ -1,7 +1,6 @@
 """Paper 003 model: eqs (1)-(5), Table 2 geometry, units, gyro-failure geometry ranks."""
 import itertools
 
-import casadi as ca
 import numpy as np
 import pytest
 
