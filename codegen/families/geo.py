@@ -1,0 +1,213 @@
+"""Continuous-discrete EKF ("cd_ekf"), paper 003 Table 1 (Lewis 1986), for any model.
+
+Time update: the estimate and the covariance are integrated *together* over [t, t + dt],
+
+    xhat' = a(xhat, u, t),     P' = A(xhat) P + P A(xhat)^T + G Q G^T,   A = da/dx,
+
+with RK4 (``model.codegen_defaults["rk4_substeps"]`` sub-steps, inputs held: zero-order hold).
+G = I: ``Q`` is the n x n power spectral density of an additive noise on every state. A is
+derived by CasADi and kept *sparse*: A P costs nnz(A) n multiplications, not n^3. Only the
+upper triangle of P (n(n+1)/2 numbers) is integrated, since P' is symmetric by construction.
+
+Measurement update (discrete, at each sensor's own rate): with U = H P (H sparse, masked rows 0),
+
+    S = U H^T + R,  K = U^T S^-1,  P+ = P - K U  (= (I - K H) P of Table 1),
+    xhat+ = xhat + K (z - h(xhat)).
+
+P+ = P - K U costs O(n^2 m) instead of the O(n^3) of (I - K H) P, and is symmetrised. Masks as
+in :mod:`symkf.codegen.filters`: a masked component contributes exactly nothing, all masked
+leaves x and P bit-for-bit unchanged (K = 0). A non-PD S returns NOT_PD (and writes nothing).
+
+C size and compile time: the augmented derivative (x', P') is one never-inlined SX function
+(sparse A P unrolled, the only place where unrolling pays), called by a never-inlined RK4 step
+written in MX, whose vector algebra becomes C loops. The updates are MX too: the small parts
+(h, sparse H, masked R, innovation, the m x m Cholesky gain) are never-inlined SX functions and
+the n x n algebra (H P, K U) is CasADi's sparse matrix-product loop. So the generated C grows with
+nnz(A) n, not with n^3, the number of sub-steps or the number of sensors times n^2.
+
+Kernels: ``cd_ekf_predict``, ``cd_ekf_update_<meas>``, ``cd_ekf_step_<meas>`` (predict + update).
+"""
+from __future__ import annotations
+
+import casadi as ca
+
+from ...models.base import Model
+from .. import linalg
+from ..discretize import FUNCTION_OPTIONS, continuous_dynamics
+from ..filters import ModelFunctions, Symbols, _innovation, _masked_noise, compose_step, register_family
+from ..spec import STATUS_NOT_PD, Kernel
+
+FAMILY = "cd_ekf"
+_CALLED = dict(FUNCTION_OPTIONS, never_inline=True)
+
+
+def upper_triangle(P: ca.SX) -> ca.SX:
+    """The n(n+1)/2 upper-triangle entries of P, column by column."""
+    n = P.shape[0]
+    return ca.vertcat(*[P[i, j] for j in range(n) for i in range(j + 1)])
+
+
+def from_upper_triangle(v: ca.SX, n: int) -> ca.SX:
+    """The symmetric matrix whose upper triangle (column by column) is v."""
+    P = ca.SX(n, n)
+    k = 0
+    for j in range(n):
+        for i in range(j + 1):
+            P[i, j] = v[k]
+            P[j, i] = v[k]
+            k += 1
+    return P
+
+
+def augmented_derivative(model: Model) -> ca.Function:
+    """(t, x, Ptri, u, p, Q) -> (a(x), triu(A P + P A^T + Q)) with A = da/dx sparse."""
+    n = model.nx
+    f = continuous_dynamics(model)
+    t, x, u, p = ca.SX.sym("t"), ca.SX.sym("x", n), ca.SX.sym("u", model.u.shape[0]), ca.SX.sym("p", model.p.shape[0])
+    ptri, Q = ca.SX.sym("Ptri", n * (n + 1) // 2), ca.SX.sym("Q", n, n)
+    xdot = f(t, x, u, p, ca.DM.zeros(model.w.shape[0]))
+    A = ca.jacobian(xdot, x)                       # sparse: only structural non-zeros multiply
+    AP = A @ from_upper_triangle(ptri, n)
+    pdot = upper_triangle(AP + AP.T + Q)
+    return ca.Function(f"{model.name}_cd_derivative", [t, x, ptri, u, p, Q], [xdot, pdot],
+                       ["t", "x", "Ptri", "u", "p", "Q"], ["xdot", "Ptri_dot"], _CALLED)
+
+
+def rk4_step(model: Model, derivative: ca.Function) -> ca.Function:
+    """One RK4 step of the augmented system over h (inputs held)."""
+    n, sym = model.nx, ca.MX.sym        # MX: the vector algebra becomes C loops, not unrolled lines
+    t, h, x = sym("t"), sym("h"), sym("x", n)
+    ptri, Q = sym("Ptri", n * (n + 1) // 2), sym("Q", n, n)
+    u, p = sym("u", model.u.shape[0]), sym("p", model.p.shape[0])
+    k1x, k1p = derivative(t, x, ptri, u, p, Q)
+    k2x, k2p = derivative(t + h / 2, x + h / 2 * k1x, ptri + h / 2 * k1p, u, p, Q)
+    k3x, k3p = derivative(t + h / 2, x + h / 2 * k2x, ptri + h / 2 * k2p, u, p, Q)
+    k4x, k4p = derivative(t + h, x + h * k3x, ptri + h * k3p, u, p, Q)
+    x_next = x + h / 6 * (k1x + 2 * k2x + 2 * k3x + k4x)
+    p_next = ptri + h / 6 * (k1p + 2 * k2p + 2 * k3p + k4p)
+    return ca.Function(f"{model.name}_cd_rk4", [t, h, x, ptri, u, p, Q], [x_next, p_next],
+                       ["t", "h", "x", "Ptri", "u", "p", "Q"], ["x", "Ptri"],
+                       {"allow_duplicate_io_names": True, "never_inline": True})
+
+
+def triangle_indices(n: int) -> tuple[list[int], list[int]]:
+    """Column-major positions of P's upper triangle, and for each of P's n^2 entries the
+    position of its upper-triangle twin (so the full P is a gather, not n^2 assignments)."""
+    upper = [i + j * n for j in range(n) for i in range(j + 1)]
+    where = {(i, j): k for k, (i, j) in enumerate((i, j) for j in range(n) for i in range(j + 1))}
+    full = [where[(min(i, j), max(i, j))] for j in range(n) for i in range(n)]
+    return upper, full
+
+
+def predict_function(model: Model, substeps: int) -> ca.Function:
+    """x and P at t + dt from x, P at t (Table 1 time update), as an MX function."""
+    if substeps < 1:
+        raise ValueError(f"{FAMILY}: rk4_substeps must be >= 1, got {substeps}")
+    n, sym = model.nx, ca.MX.sym
+    t, dt, x0, P = sym("t"), sym("dt"), sym("x", n), sym("P", n, n)
+    u, p, Q = sym("u", model.u.shape[0]), sym("p", model.p.shape[0]), sym("Q", n, n)
+    step = rk4_step(model, augmented_derivative(model))
+    upper, full = triangle_indices(n)
+    h = dt / substeps
+    x, ptri = x0, ca.vec(P)[upper]              # P is symmetric: its upper triangle is all of it
+    for i in range(substeps):
+        x, ptri = step(t + i * h, h, x, ptri, u, p, Q)
+    names = ["t", "dt", "x", "P", "u", "p", "Q"]
+    return ca.Function(f"{model.name}_k_{FAMILY}_predict", [t, dt, x0, P, u, p, Q],
+                       [x, ca.reshape(ptri[full], n, n), ca.MX(0)], names, ["x", "P", "status"],
+                       {"allow_duplicate_io_names": True})
+
+
+def measurement_jacobian(model: Model, name: str) -> ca.Function:
+    """h and its sparse Jacobian H = dh/dx of one measurement (inlined into the update)."""
+    meas = model.measurements[name]
+    args = [model.t, model.x, model.u, model.p, meas.q]
+    return ca.Function(f"h_and_H_{name}", args, [meas.h, ca.jacobian(meas.h, model.x)],
+                       ["t", "x", "u", "p", "q"], ["z", "H"])
+
+
+def measurement_terms(model: Model, name: str) -> ca.Function:
+    """(t, x, u, p, q, z, mask, R) -> masked sparse H, masked R, innovation y (small, SX)."""
+    meas = model.measurements[name]
+    m, n = meas.size, model.nx
+    t, x, u, p = ca.SX.sym("t"), ca.SX.sym("x", n), ca.SX.sym("u", model.u.shape[0]), ca.SX.sym("p", model.p.shape[0])
+    q, z, mask, R = ca.SX.sym("q", meas.q.shape[0]), ca.SX.sym("z", m), ca.SX.sym("mask", m), ca.SX.sym("R", m, m)
+    z_pred, H = measurement_jacobian(model, name)(t, x, u, p, q)
+    y = _innovation(z, z_pred, mask, meas.wrap)
+    return ca.Function(f"{model.name}_cd_terms_{name}", [t, x, u, p, q, z, mask, R],
+                       [ca.diag(mask) @ H, _masked_noise(R, mask), y],
+                       ["t", "x", "u", "p", "q", "z", "mask", "R"], ["H", "R", "y"], _CALLED)
+
+
+def kalman_gain(n: int, m: int, prefix: str) -> ca.Function:
+    """(S, U) -> K = U^T S^-1 by Cholesky, and a 0/1 flag that S was positive definite."""
+    S, U = ca.SX.sym("S", m, m), ca.SX.sym("U", m, n)
+    L, ok = linalg.cholesky(linalg.symmetrize(S))
+    return ca.Function(f"{prefix}_cd_gain_{n}x{m}", [S, U], [linalg.cholesky_solve(L, U).T, ok],
+                       ["S", "U"], ["K", "ok"], _CALLED)
+
+
+def update_function(model: Model, name: str, gain: ca.Function) -> ca.Function:
+    """Table 1 measurement update, masked (see module docstring), as an MX function: the
+    n x n algebra (U = H P with H sparse, P - K U) is emitted as C loops, not unrolled."""
+    meas = model.measurements[name]
+    n, m = model.nx, meas.size
+    sym = ca.MX.sym
+    t, x, P, u, p = sym("t"), sym("x", n), sym("P", n, n), sym("u", model.u.shape[0]), sym("p", model.p.shape[0])
+    q, z, mask, R = sym("q", meas.q.shape[0]), sym("z", m), sym("mask", m), sym("R", m, m)
+    H, R_masked, y = measurement_terms(model, name)(t, x, u, p, q, z, mask, R)
+    U = ca.mtimes(H, P)                                   # m x n, only H's non-zeros multiply
+    S = ca.mtimes(U, H.T) + R_masked
+    S = 0.5 * (S + S.T)
+    K, ok = gain(S, U)                                    # n x m = P H^T S^-1 (shared per m)
+    P_new = P - ca.mtimes(K, U)                           # (I - K H) P
+    P_new = 0.5 * (P_new + P_new.T)
+    status = ca.if_else(ok, 0, STATUS_NOT_PD)
+    names = ["t", "x", "P", "u", "p", "q", "z", "mask", "R"]
+    return ca.Function(f"{model.name}_k_{FAMILY}_update_{name}", [t, x, P, u, p, q, z, mask, R],
+                       [x + ca.mtimes(K, y), P_new, y, S, status], names, ["x", "P", "y", "S", "status"],
+                       {"allow_duplicate_io_names": True})
+
+
+def _substeps(model: Model) -> int:
+    return int(model.codegen_defaults.get("rk4_substeps", 1))
+
+
+def cd_ekf_kernels(model: Model, symbols: Symbols, functions: ModelFunctions) -> list[Kernel]:
+    """The continuous-discrete EKF of Table 1 for ``model`` (any model: nothing here is GEO-specific)."""
+    substeps = _substeps(model)
+    predict = Kernel(f"{FAMILY}_predict", predict_function(model, substeps),
+                     "Continuous-discrete EKF time update t -> t + dt: x' = a(x), P' = A P + P A^T + Q "
+                     f"integrated together (RK4, {substeps} sub-step(s)).",
+                     tuple(symbols.arg[a] for a in ("t", "dt", "x", "P", "u", "p", "Q")),
+                     tuple(symbols.arg[a] for a in ("x", "P", "status")))
+    gains = {m: kalman_gain(model.nx, m, model.name) for m in {meas.size for meas in model.measurements.values()}}
+    kernels = [predict]
+    for name in model.measurements:
+        _, marg = symbols.measurement(name)
+        args = {**symbols.arg, **marg}
+        update = Kernel(f"{FAMILY}_update_{name}",
+                        update_function(model, name, gains[model.measurements[name].size]),
+                        f"Continuous-discrete EKF update with '{name}' at time t (masked, P = (I - K H) P).",
+                        tuple(args[a] for a in ("t", "x", "P", "u", "p", "q", "z", "mask", "R")),
+                        tuple(args[a] for a in ("x", "P", "y", "S", "status")))
+        kernels += [update, compose_step(f"{FAMILY}_step_{name}", predict, update)]
+    return kernels
+
+
+register_family(FAMILY, cd_ekf_kernels)
+
+
+def reference_functions(model: Model) -> dict[str, ca.Function]:
+    """Numeric CasADi Functions for a NumPy reference of this family: a(x), dense A = da/dx, and
+    per measurement h and dense H (the same symbolic sources as the generated kernels)."""
+    f = continuous_dynamics(model)
+    xdot = f(model.t, model.x, model.u, model.p, ca.DM.zeros(model.w.shape[0]))
+    names = ["t", "x", "u", "p"]
+    functions = {"a": ca.Function("a", [model.t, model.x, model.u, model.p], [xdot], names, ["xdot"]),
+                 "A": ca.Function("A", [model.t, model.x, model.u, model.p], [ca.densify(ca.jacobian(xdot, model.x))],
+                                  names, ["A"])}
+    for name in model.measurements:
+        h_and_H = measurement_jacobian(model, name)
+        functions[f"h_{name}"] = h_and_H
+    return functions

@@ -1,0 +1,160 @@
+"""Model-author loop and step cost of the Koreasat-3 continuous-discrete EKF (paper 003).
+
+    symkf bench geo [--json] [--repeats N] [--opt-levels]
+
+Measures, each as the median of ``--repeats``:
+
+- full build: ``symkf build geo_satellite`` (a fresh process, so including Python/CasADi start-up)
+  into an empty build folder: generate + write + compile;
+- no-op build: the same command again (content hash unchanged);
+- edit build: after a one-line edit of the model (Table 2's I_xy 53 -> 54). The edit is made in
+  a temporary copy of the sources, never in this checkout;
+- per-call cost of the compiled kernels: ``cd_ekf_predict`` (1/8 s, RK4 of x and P) and each
+  ``cd_ekf_update_<sensor>``, both as a bare bound call (ctypes) and through the Python filter
+  object, and the NumPy reference for comparison.
+
+Targets of the issue (2-core machine): full build <= 10 s, no-op <= 1 s, a step <= 10 us.
+``--opt-levels`` also compiles the generated C at -O1/-O2/-O3 and reports compile times.
+"""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .. import PROJECT_ROOT
+
+MODEL = "geo_satellite"
+EDIT = ('"Ixy": 53.0,', '"Ixy": 54.0,')      # one line of Table 2 in models/geo_satellite.py
+TARGETS = {"full_build_s": 10.0, "noop_build_s": 1.0, "step_us": 10.0}
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("--json", action="store_true", help="print the results as JSON")
+    parser.add_argument("--repeats", type=int, default=1, help="builds per measurement (median)")
+    parser.add_argument("--opt-levels", action="store_true", help="also time compiling at -O1/-O2/-O3")
+
+
+# ---------------------------------------------------------------------- build loop
+def _source_copy(root: Path) -> Path:
+    """The package laid out as ``symkf/`` under ``root`` (importable with PYTHONPATH=root)."""
+    package = root / "symkf"
+    shutil.copytree(PROJECT_ROOT / "symkf_pkg", package, ignore=shutil.ignore_patterns("__pycache__"))
+    for folder in ("models", "codegen", "runtime", "scenarios"):
+        shutil.copytree(PROJECT_ROOT / folder, package / folder, ignore=shutil.ignore_patterns("__pycache__"))
+    return package
+
+
+def _timed_build(source_root: Path, build_dir: Path) -> float:
+    env = dict(os.environ, PYTHONPATH=str(source_root), SYMKF_BUILD_DIR=str(build_dir))
+    start = time.perf_counter()
+    proc = subprocess.run([sys.executable, "-m", "symkf.scenarios.cli", "build", MODEL], env=env,
+                          capture_output=True, text=True, cwd=source_root)
+    seconds = time.perf_counter() - start
+    if proc.returncode != 0:
+        raise RuntimeError(f"symkf build {MODEL} failed:\n{proc.stderr[-2000:]}")
+    return seconds
+
+
+def build_loop(repeats: int) -> dict:
+    full, noop, edit = [], [], []
+    for _ in range(repeats):
+        with tempfile.TemporaryDirectory(prefix="symkf-bench-geo-") as tmp:
+            root = Path(tmp)
+            package = _source_copy(root / "src")
+            build_dir = root / "build"
+            full.append(_timed_build(root / "src", build_dir))
+            noop.append(_timed_build(root / "src", build_dir))
+            model_file = package / "models" / f"{MODEL}.py"
+            text = model_file.read_text()
+            if EDIT[0] not in text:
+                raise RuntimeError(f"bench: the line to edit ({EDIT[0]}) is not in {model_file.name}")
+            model_file.write_text(text.replace(EDIT[0], EDIT[1], 1))
+            edit.append(_timed_build(root / "src", build_dir))
+            c_file = build_dir / MODEL / f"{MODEL}.c"
+            lines = len(c_file.read_text().splitlines())
+    return {"full_build_s": statistics.median(full), "noop_build_s": statistics.median(noop),
+            "edit_build_s": statistics.median(edit), "generated_c_lines": lines,
+            "samples": {"full": full, "noop": noop, "edit": edit}}
+
+
+def compile_levels(levels=("-O1", "-O2", "-O3")) -> dict:
+    """Compile the generated C at several -O levels (strict flags as in the build)."""
+    from ..codegen.build import build_model
+    from ..codegen.c_writer import STRICT_FLAGS
+    result = build_model(MODEL)
+    times = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for level in levels:
+            cmd = ["cc", *STRICT_FLAGS.split(), level, "-fno-math-errno", "-fPIC", "-shared",
+                   "-o", str(Path(tmp) / "lib.so"), str(result.directory / f"{MODEL}.c"), "-lm"]
+            start = time.perf_counter()
+            subprocess.run(cmd, check=True, capture_output=True)
+            times[level] = time.perf_counter() - start
+    return times
+
+
+# ---------------------------------------------------------------------- step cost
+def _median_us(call, n: int = 2000, blocks: int = 7) -> float:
+    samples = []
+    for _ in range(blocks):
+        start = time.perf_counter()
+        for _ in range(n):
+            call()
+        samples.append((time.perf_counter() - start) / n * 1e6)
+    return statistics.median(samples)
+
+
+def step_cost() -> dict:
+    from ..models import geo_satellite as geo
+    from ..models import get_model
+    from ..runtime.geo import NumpyCDEKF, _load
+    compiled = _load()
+    tune = geo.filter_tuning()
+    x0 = geo.initial_errors(geo.TABLE6)
+    ekf = compiled.filter("cd_ekf", x0, tune["P0"], tune["Q"], R=tune["R"])
+    reference = NumpyCDEKF(get_model(MODEL), x0, tune["P0"], tune["Q"], tune["R"])
+    u = np.array([0.3, -0.1, 0.2, 0.05])
+    bare = ekf._calls                                      # the bound ctypes calls (no Python checks)
+    out = {"predict": {"bare_call_us": _median_us(bare["predict"]),
+                       "filter_method_us": _median_us(lambda: ekf.predict(0.0, 0.125, u=u)),
+                       "numpy_reference_us": _median_us(lambda: reference.predict(0.0, 0.125, u=u), n=50, blocks=3)}}
+    for name, meas in compiled.model["measurements"].items():
+        z = np.zeros(len(meas["outputs"]))
+        out[f"update_{name}"] = {
+            "bare_call_us": _median_us(bare[("update", name)]),
+            "filter_method_us": _median_us(lambda: ekf.update(z, measurement=name)),
+            "numpy_reference_us": _median_us(lambda: reference.update(z, measurement=name), n=50, blocks=3)}
+    return out
+
+
+def run(args) -> int:
+    results = {"model": MODEL, "targets": TARGETS, "build": build_loop(max(args.repeats, 1)), "step": step_cost()}
+    if args.opt_levels:
+        results["compile_seconds_by_level"] = compile_levels()
+    predict = results["step"]["predict"]["bare_call_us"]
+    results["meets_targets"] = {
+        "full_build": results["build"]["full_build_s"] <= TARGETS["full_build_s"],
+        "noop_build": results["build"]["noop_build_s"] <= TARGETS["noop_build_s"],
+        "step": predict <= TARGETS["step_us"]}
+    if args.json:
+        print(json.dumps(results, indent=1))
+        return 0
+    b = results["build"]
+    print(f"{MODEL}: full build {b['full_build_s']:.2f} s, no-op {b['noop_build_s']:.2f} s, "
+          f"after a one-line edit {b['edit_build_s']:.2f} s ({b['generated_c_lines']} lines of C)")
+    print(f"{'kernel':28s} {'bare call us':>13s} {'filter us':>10s} {'numpy us':>10s}")
+    for name, row in results["step"].items():
+        print(f"{name:28s} {row['bare_call_us']:13.2f} {row['filter_method_us']:10.2f} {row['numpy_reference_us']:10.1f}")
+    for level, seconds in results.get("compile_seconds_by_level", {}).items():
+        print(f"compile {level}: {seconds:.2f} s")
+    print("meets targets:", results["meets_targets"])
+    return 0
