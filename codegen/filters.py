@@ -78,6 +78,7 @@ class ModelFunctions:
     """
 
     def __init__(self, model: Model, config: CodegenConfig):
+        self.config = config
         prefix = model.name
         options = dict(FUNCTION_OPTIONS, never_inline=True)
         self.zero_w = ca.DM.zeros(len(model.noises))
@@ -115,7 +116,8 @@ def make_kernel(name: str, doc: str, symbols: Symbols, extra_sym: dict, extra_ar
 
 # ---------------------------------------------------------------------- model functions
 def model_kernels(model: Model, symbols: Symbols, fns: ModelFunctions) -> list[Kernel]:
-    """f, f_d, F = df_d/dx, and h, H = dh/dx for every measurement."""
+    """f, f_d, F = df_d/dx, and h, H = dh/dx for every measurement (those in
+    ``model.generic_kernels``: a model whose filters need none of them can leave them out)."""
     s = symbols.sym
     f = continuous_dynamics(model)
     step_args = (s["t"], s["dt"], s["x"], s["u"], s["p"])
@@ -137,7 +139,17 @@ def model_kernels(model: Model, symbols: Symbols, fns: ModelFunctions) -> list[K
                     symbols, msym, marg, ["t", "x", "u", "p", "q"],
                     [("H", fns.jac_h[name](*meas_args)), ("status", ca.SX(0))]),
         ]
-    return kernels
+    wanted = _generic_names(model)
+    return [k for k in kernels if k.name in wanted]
+
+
+def _generic_names(model: Model) -> set[str]:
+    wanted = set(model.generic_kernels)
+    names = {"f", "fd", "jac_fd"} & wanted
+    for name in model.measurements:
+        names |= {f"h_{name}"} if "h" in wanted else set()
+        names |= {f"jac_h_{name}"} if "jac_h" in wanted else set()
+    return names
 
 
 # ---------------------------------------------------------------------- shared update algebra

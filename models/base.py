@@ -79,6 +79,9 @@ class Model:
     filters: tuple[str, ...] = ("ekf", "ukf")
     #: Codegen settings the model author wants by default (e.g. {"rk4_substeps": 2}).
     codegen_defaults: dict = field(default_factory=dict)
+    #: Stand-alone model functions to export besides the filters ("f", "fd", "jac_fd", "h",
+    #: "jac_h"); a model whose filters use none of them may drop some to keep the C small.
+    generic_kernels: tuple[str, ...] = ("f", "fd", "jac_fd", "h", "jac_h")
     _symbols: dict[str, list[ca.SX]] = field(default_factory=lambda: {k: [] for k in "xupw"})
     _pending_q: tuple | None = None
 

@@ -197,6 +197,7 @@ def build(units: str = "paper") -> Model:
     # -O2: measured (bench_geo) to compile ~2x faster than -O3 for the same step time; -O1
     # compiles in 2/3 of the time of -O2 but the predict step is ~30 % slower.
     m.codegen_defaults = {"rk4_substeps": 1, "optimization": "-O2 -fno-math-errno"}
+    m.generic_kernels = ("f", "fd", "h")       # the truth and sensors use these; jac_fd is not needed
     return m
 
 

@@ -4,7 +4,7 @@ Time update: the estimate and the covariance are integrated *together* over [t, 
 
     xhat' = a(xhat, u, t),     P' = A(xhat) P + P A(xhat)^T + G Q G^T,   A = da/dx,
 
-with RK4 (``model.codegen_defaults["rk4_substeps"]`` sub-steps, inputs held: zero-order hold).
+with RK4 (``CodegenConfig.rk4_substeps`` sub-steps, inputs held: zero-order hold).
 G = I: ``Q`` is the n x n power spectral density of an additive noise on every state. A is
 derived by CasADi and kept *sparse*: A P costs nnz(A) n multiplications, not n^3. Only the
 upper triangle of P (n(n+1)/2 numbers) is integrated, since P' is symmetric by construction.
@@ -169,13 +169,9 @@ def update_function(model: Model, name: str, gain: ca.Function) -> ca.Function:
                        {"allow_duplicate_io_names": True})
 
 
-def _substeps(model: Model) -> int:
-    return int(model.codegen_defaults.get("rk4_substeps", 1))
-
-
 def cd_ekf_kernels(model: Model, symbols: Symbols, functions: ModelFunctions) -> list[Kernel]:
     """The continuous-discrete EKF of Table 1 for ``model`` (any model: nothing here is GEO-specific)."""
-    substeps = _substeps(model)
+    substeps = functions.config.rk4_substeps
     predict = Kernel(f"{FAMILY}_predict", predict_function(model, substeps),
                      "Continuous-discrete EKF time update t -> t + dt: x' = a(x), P' = A P + P A^T + Q "
                      f"integrated together (RK4, {substeps} sub-step(s)).",
