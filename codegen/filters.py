@@ -87,6 +87,9 @@ class ModelFunctions:
         x_next = fd(t, dt, x, u, p, self.zero_w)
         args, names = [t, dt, x, u, p], ["t", "dt", "x", "u", "p"]
         self.fd = ca.Function(f"{prefix}_fd", args, [x_next], names, ["x"], options)
+        # inlined where it is called: the UKF's 2n+1 calls then share every term that depends
+        # on time only (thrust, mass, guidance), which CSE evaluates once per step
+        self.fd_inline = ca.Function(f"{prefix}_fd_inline", args, [x_next], names, ["x"], FUNCTION_OPTIONS)
         F = ca.densify(ca.jacobian(x_next, x))
         self.jac_fd = ca.Function(f"{prefix}_jac_fd", args, [F], names, ["F"], options)
         # f_d and F together share the primal evaluation (the EKF prediction needs both)
@@ -285,7 +288,7 @@ def _angle_difference(a: ca.SX, b: ca.SX, wrap: tuple[bool, ...]) -> ca.SX:
 def ukf_predict_expr(symbols: Symbols, fns: ModelFunctions, x, P, t, dt):
     s = symbols.sym
     points, weights, ok = sigma_points(x, P, s["kappa"])
-    propagated = [fns.fd(t, dt, pt, s["u"], s["p"]) for pt in points]
+    propagated = [fns.fd_inline(t, dt, pt, s["u"], s["p"]) for pt in points]
     x_pred = _weighted_mean(propagated, weights)
     P_pred = sum((w * (pt - x_pred) @ (pt - x_pred).T for w, pt in zip(weights, propagated)),
                  ca.SX.zeros(P.shape)) + s["Q"] * dt
