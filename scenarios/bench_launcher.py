@@ -15,6 +15,8 @@ Each figure is the median over batches of consecutive steps of a real 20 Hz flig
 from __future__ import annotations
 
 import json
+import re
+import shutil
 import statistics
 import subprocess
 import tempfile
@@ -41,10 +43,12 @@ def add_arguments(parser) -> None:
     parser.add_argument("--reference-steps", type=int, default=10000,
                         help="steps for the NumPy reference and FilterPy (default 10000)")
     parser.add_argument("--campaign", action="store_true", help="also time the default compare campaign")
+    parser.add_argument("--instructions", action="store_true",
+                        help="also count instructions per C-loop step with valgrind (deterministic)")
 
 
 def run(args) -> int:
-    report = measure(args.steps, args.reference_steps, args.campaign)
+    report = measure(args.steps, args.reference_steps, args.campaign, args.instructions)
     if args.json:
         print(json.dumps(report, indent=1))
     else:
@@ -151,8 +155,10 @@ int main(int argc, char **argv) {
 """
 
 
-def time_c_loop(work: Workload, steps: int) -> dict[str, float]:
-    """Compile the C loop against build/launcher/ (library flags) and run it for both filters."""
+def time_c_loop(work: Workload, steps: int, instructions: bool = False) -> dict[str, dict]:
+    """Compile the C loop against build/launcher/ (library flags) and run it for both filters;
+    with ``instructions``, also count instructions per step under callgrind (deterministic, unlike
+    wall-clock time on a shared machine)."""
     result = build_model("launcher")
     manifest = json.loads(result.manifest.read_text())
     with tempfile.TemporaryDirectory() as tmp:
@@ -168,15 +174,27 @@ def time_c_loop(work: Workload, steps: int) -> dict[str, float]:
         lines = [" ".join(f"{v:.17g}" for v in head), str(len(work.base_times))]
         lines += [" ".join(f"{v:.17g}" for v in np.concatenate([[t], z, q]))
                   for t, z, q in zip(work.base_times, work.z, work.q)]
+        stdin = "\n".join(lines)
         out = {}
         for family in FILTERS:
-            proc = subprocess.run([str(exe), family, str(steps)], input="\n".join(lines), capture_output=True,
-                                  text=True, check=True, env={"LD_LIBRARY_PATH": str(result.directory)})
+            proc = subprocess.run([str(exe), family, str(steps)], input=stdin, capture_output=True,
+                                  text=True, check=True)
             value, code = proc.stdout.split()
             if int(code):
                 raise RuntimeError(f"c_loop: {family} step returned a failure code")
-            out[family] = float(value)
+            out[family] = {"us_per_step": float(value)}
+            if instructions and shutil.which("valgrind"):
+                out[family]["instructions_per_step"] = _instructions_per_step(exe, family, stdin, Path(tmp))
     return out
+
+
+def _instructions_per_step(exe: Path, family: str, stdin: str, tmp: Path) -> float:
+    """Callgrind's instruction count of 1100 steps minus that of 100 steps, per step."""
+    def count(steps: int) -> int:
+        proc = subprocess.run(["valgrind", "--tool=callgrind", f"--callgrind-out-file={tmp}/callgrind.out",
+                               str(exe), family, str(steps)], input=stdin, capture_output=True, text=True, check=True)
+        return int(re.search(r"Collected : (\d+)", proc.stderr).group(1))
+    return (count(1100) - count(100)) / 1000
 
 
 def time_filterpy(model, family: str, work: Workload, steps: int) -> float | None:
@@ -196,19 +214,24 @@ def time_filterpy(model, family: str, work: Workload, steps: int) -> float | Non
     return _median_us(batches, batch)
 
 
-def measure(steps: int, reference_steps: int, campaign: bool) -> dict:
+def measure(steps: int, reference_steps: int, campaign: bool, instructions: bool = False) -> dict:
     model = load("launcher", backend="compiled")
     work = Workload(steps)
-    c_loop = time_c_loop(work, steps)
+    c_loop = time_c_loop(work, steps, instructions)
     rows = []
     for family in FILTERS:
         figures = {"numpy_reference": time_reference(family, work, reference_steps),
                    "compiled_step": time_compiled_step(model, family, work),
-                   "c_loop": c_loop[family],
+                   "c_loop": c_loop[family]["us_per_step"],
                    "compiled_run": time_compiled_run(model, family, work),
                    "filterpy": time_filterpy(model, family, work, reference_steps)}
-        rows += [{"filter": family, "path": path, "us_per_step": value} for path, value in figures.items()
-                 if value is not None]
+        for path, value in figures.items():
+            if value is None:
+                continue
+            row = {"filter": family, "path": path, "us_per_step": value}
+            if path == "c_loop" and "instructions_per_step" in c_loop[family]:
+                row["instructions_per_step"] = c_loop[family]["instructions_per_step"]
+            rows.append(row)
     report = {"rows": rows, "paper_ms_per_step": L.PAPER_MS_PER_STEP, "ratios": ratios(rows),
               "steps": steps, "reference_steps": reference_steps}
     if campaign:
@@ -245,6 +268,9 @@ def human_table(report: dict) -> str:
     for path in paths:
         e, u = value[("ekf", path)], value[("ukf", path)]
         lines.append(f"{path:<18}{e:>14.2f}{u:>14.2f}{u / e:>10.2f}")
+    counts = {r["filter"]: r["instructions_per_step"] for r in report["rows"] if "instructions_per_step" in r}
+    if counts:
+        lines.append(f"{'c_loop instr.':<18}{counts['ekf']:>14.0f}{counts['ukf']:>14.0f}{counts['ukf'] / counts['ekf']:>10.2f}")
     for family in FILTERS:
         lines.append(f"{family}: " + ", ".join(f"{k} = {v:.1f}" for k, v in report["ratios"][family].items()))
     if "campaign_wall_s" in report:
