@@ -67,17 +67,20 @@ def run(args) -> int:
 
 
 class ProgressBar:
-    """A one-line progress bar on stderr."""
+    """A one-line progress bar on stderr (a line per 10 % when stderr is not a terminal)."""
 
     def __init__(self, width: int = 40):
         self.width, self.start = width, time.perf_counter()
+        self.interactive = sys.stderr.isatty()
 
     def __call__(self, done: int, total: int) -> None:
         filled = int(self.width * done / total)
         elapsed = time.perf_counter() - self.start
-        sys.stderr.write(f"\r[{'#' * filled}{'.' * (self.width - filled)}] {done}/{total} runs, {elapsed:.1f} s")
-        if done == total:
-            sys.stderr.write("\n")
+        text = f"[{'#' * filled}{'.' * (self.width - filled)}] {done}/{total} runs, {elapsed:.1f} s"
+        if self.interactive:
+            sys.stderr.write("\r" + text + ("\n" if done == total else ""))
+        elif done == total or (10 * done) // total != (10 * (done - 1)) // total:
+            sys.stderr.write(text + "\n")
         sys.stderr.flush()
 
 
