@@ -44,6 +44,11 @@ def body_rate(omega_g, bias, eta_a):
     return omega_g + bias + eta_a
 
 
+def gyro_output(omega, bias, eta_a):
+    """Eq (28): ω_g = ω - b - η_a (works on CasADi symbols and NumPy arrays alike)."""
+    return omega - bias - eta_a
+
+
 def quaternion_rate(q, omega):
     """Eq (27): dq/dt = ½ Ω(ω) q."""
     return 0.5 * quat.omega_matrix(omega) @ q
