@@ -111,7 +111,7 @@ class AttitudeFilter:
         self._backend = backend
         self._step_kernel = f"{kind}_step_star_tracker"
         self._step = backend.bind(self._step_kernel, self._buffers)
-        self._predict = backend.bind(f"{kind}_predict", self._buffers) if kind != "aukf" else None
+        self._predict = backend.bind(f"{kind}_predict", self._buffers)
         self._update = backend.bind(f"{kind}_update_star_tracker", self._buffers) if kind != "aukf" else None
 
     # ------------------------------------------------------------------ views
@@ -135,11 +135,7 @@ class AttitudeFilter:
     def predict(self, omega_g, dt: float) -> None:
         """Propagate over dt with gyro output omega_g (rad/s)."""
         self._set_step(omega_g, dt)
-        if self._predict is None:
-            self._buffers["mask"][0] = 0.0
-            self._check(self._step(), "predict")
-        else:
-            self._check(self._predict(), "predict")
+        self._check(self._predict(), "predict")
         self.t += dt
 
     def update(self, q_s) -> None:
@@ -153,11 +149,13 @@ class AttitudeFilter:
 
     def step(self, omega_g, dt: float, q_s=None) -> None:
         """Propagate over dt, then update with q_s if it is not None — one compiled call."""
-        z = None if q_s is None else _measurement(q_s)
+        if q_s is None:
+            self.predict(omega_g, dt)
+            return
+        z = _measurement(q_s)
         self._set_step(omega_g, dt)
-        self._buffers["mask"][0] = 0.0 if z is None else 1.0
-        if z is not None:
-            self._buffers["z"][:] = z
+        self._buffers["mask"][0] = 1.0
+        self._buffers["z"][:] = z
         self._check(self._step(), "step")
         self.t += dt
 

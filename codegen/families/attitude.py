@@ -21,8 +21,12 @@ Kernels (the C names are ``attitude_<kernel>``):
   is the eigenvector of N (36) for its smallest eigenvalue (38). Update in the space [x, v]
   (eqs (16)-(22), (46)-(53)): 2·9+1 = 19 points, γ_m = √(9+κ), mean predicted star-tracker
   quaternion again by (38), innovation (50), gain (5), reset (51)-(52), covariance (7).
-- ``aukf_step_star_tracker``: the same UKF in the full augmented space [x, w, v] (15 dims,
-  31 points, one 15x15 Cholesky factor per step), for the paper's efficiency comparison.
+- ``aukf_predict / aukf_step_star_tracker``: the same UKF in the full augmented space [x, w, v]
+  (15 dims, 31 points, one 15x15 Cholesky factor per step; the update reuses the propagated
+  sigma set), for the paper's efficiency comparison.
+
+Kernels are branch-free: a step kernel with mask = 0 still evaluates its update and discards it,
+so a filter object calls the predict kernel for gyro-only steps; the C run loop uses the step.
 - ``quaternion_mean_<n>``: the eigenvector mean alone, for tests.
 
 Quaternion mean without LAPACK: N = Σ W_i Ψ(q_i)Ψ(q_i)ᵀ = (Σ W_i) I - M for unit q_i with
@@ -367,22 +371,37 @@ def ukf_update_kernel(a: AttitudeSymbols, fns: AttitudeFunctions) -> Kernel:
 
 
 # ---------------------------------------------------------------------- full augmented UKF
-def augmented_step_kernel(a: AttitudeSymbols, fns: AttitudeFunctions) -> Kernel:
-    """One sigma set in [x, w, v] (15 dims, 31 points) carries both propagation and update."""
+def _augmented_propagation(a: AttitudeSymbols, fns: AttitudeFunctions):
+    """The [x, w, v] sigma set (15 dims, 31 points, one full 15x15 Cholesky factor), propagated."""
     s, kappa = a.base.sym, a.base.sym["kappa"]
     q_hat, b_hat = a.split_state()
     dimension = N_ERROR + N_PROCESS_NOISE + N_MEAS_NOISE
     covariance = ca.diagcat(a.sym["P"], a.sym["Q"] / s["dt"], a.sym["R"])
-    factor, pd = linalg.cholesky(covariance)          # the full 15x15 factor, as an augmented UKF does
+    factor, pd = linalg.cholesky(covariance)          # the full factor, as an augmented UKF does
     offsets = _sigma_offsets(factor, ca.sqrt(ca.fmax(dimension + kappa, 0)))
     weights = _ukf_weights(dimension, kappa)
     q_points, b_points, in_domain = propagate_sigma_set(
         fns, [o[0:6] for o in offsets], [o[6:12] for o in offsets], q_hat, b_hat, s["u"], s["dt"])
     q_pred, b_pred, dev = sigma_mean_and_deviations(fns, q_points, b_points, weights)
     P_pred = linalg.symmetrize(_symmetric_sum(weights, dev, dev))
+    checks = [(s["dt"] > 0, STATUS_DOMAIN), (dimension + kappa > 0, STATUS_DOMAIN), (pd, STATUS_NOT_PD),
+              (in_domain, STATUS_DOMAIN)]
+    return offsets, weights, q_points, q_pred, b_pred, dev, P_pred, checks
+
+
+def augmented_predict_kernel(a: AttitudeSymbols, fns: AttitudeFunctions) -> Kernel:
+    """Propagation only, still from the 31-point [x, w, v] set (the v columns are carried unused)."""
+    _, _, _, q_pred, b_pred, _, P_pred, checks = _augmented_propagation(a, fns)
+    return a.kernel("aukf_predict", "Full-augmented UKF propagation in [x, w, v] (31 sigma points).",
+                    PREDICT_INPUTS + ["R"], [("x", ca.vertcat(q_pred, b_pred)), ("P", P_pred),
+                                             ("status", _status(checks))])
+
+
+def augmented_step_kernel(a: AttitudeSymbols, fns: AttitudeFunctions) -> Kernel:
+    """One sigma set in [x, w, v] (15 dims, 31 points) carries both propagation and update."""
+    s = a.base.sym
+    offsets, weights, q_points, q_pred, b_pred, dev, P_pred, pre_checks = _augmented_propagation(a, fns)
     x_pred = ca.vertcat(q_pred, b_pred)
-    pre_checks = [(s["dt"] > 0, STATUS_DOMAIN), (dimension + kappa > 0, STATUS_DOMAIN), (pd, STATUS_NOT_PD),
-                  (in_domain, STATUS_DOMAIN)]
     x_new, P_new, innovation, P_yy, checks = sigma_update(
         fns, a, q_pred, b_pred, P_pred, dev, q_points, [o[12:15] for o in offsets], weights, pre_checks)
     use = a.sym["mask"] > 0.5
@@ -392,13 +411,12 @@ def augmented_step_kernel(a: AttitudeSymbols, fns: AttitudeFunctions) -> Kernel:
     x_out = linalg.select(ok_update, x_new, linalg.select(ok_any, x_pred, s["x"]))
     P_out = linalg.select(ok_update, P_new, linalg.select(ok_any, P_pred, a.sym["P"]))
     inputs = PREDICT_INPUTS + ["z", "mask", "R"]
-    kernel = make_kernel("aukf_step_star_tracker", "Full-augmented UKF step in [x, w, v] (31 sigma points): "
-                         "propagation and, if mask = 1, the star-tracker update from the same sigma set.",
-                         a.base, a.sym, a.arg, inputs,
-                         [("x", x_out), ("P", P_out), ("y", linalg.select(ok_update, innovation, ca.SX.zeros(3))),
-                          ("S", linalg.select(ok_update, P_yy, ca.SX.eye(3))), ("status", status)],
-                         carried=("x", "P"), per_step=("t", "dt", "u", "z", "mask"))
-    return kernel
+    return make_kernel("aukf_step_star_tracker", "Full-augmented UKF step in [x, w, v] (31 sigma points): "
+                       "propagation and, if mask = 1, the star-tracker update from the same sigma set.",
+                       a.base, a.sym, a.arg, inputs,
+                       [("x", x_out), ("P", P_out), ("y", linalg.select(ok_update, innovation, ca.SX.zeros(3))),
+                        ("S", linalg.select(ok_update, P_yy, ca.SX.eye(3))), ("status", status)],
+                       carried=("x", "P"), per_step=("t", "dt", "u", "z", "mask"))
 
 
 # ---------------------------------------------------------------------- family
@@ -428,7 +446,7 @@ def attitude_kernels(model, symbols: Symbols, functions) -> list[Kernel]:
     kernels += mekf_kernels(a, fns)
     predict, update = ukf_predict_kernel(a, fns), ukf_update_kernel(a, fns)
     kernels += [predict, update, compose_step("ukf_step_star_tracker", predict, update)]
-    kernels.append(augmented_step_kernel(a, fns))
+    kernels += [augmented_predict_kernel(a, fns), augmented_step_kernel(a, fns)]
     return kernels
 
 
