@@ -3,9 +3,10 @@ UKF ([x, w] and [x, v]) and the full augmented UKF ([x, w, v]).
 
     symkf bench attitude [--json] [--steps N] [--repeats R]
 
-For each filter: compiled step (one C call from Python per step), compiled run (the time loop in
-C, µs per step), and the NumPy reference (plain Python). Steps are timed both as propagation only
-(gyro, no star tracker) and as propagation + star-tracker update. Medians over ``--repeats``.
+For each filter: the predict kernel and the step kernel (propagation + star-tracker update) as
+one bound C call each, the C run loop (µs per step, update every step), the Python filter
+object's step (propagation only / with update), and the NumPy reference (plain Python).
+Medians over ``--repeats``; the machine's load shows in the spread, so read ratios, not digits.
 """
 from __future__ import annotations
 
@@ -47,37 +48,58 @@ def _median_us(function, repeats: int, steps: int) -> float:
     return float(np.median(samples))
 
 
+def _kernel_us(filt: AttitudeFilter, call, repeats: int, calls: int) -> float:
+    """One bound kernel call (x, P restored after each, so every call does the same work)."""
+    x0, P0 = filt._buffers["x"].copy(), filt._buffers["P"].copy()
+
+    def loop():
+        for _ in range(calls):
+            call()
+            filt._buffers["x"][:] = x0
+            filt._buffers["P"][:] = P0
+    return _median_us(loop, repeats, calls)
+
+
 def bench(steps: int, repeats: int, reference_steps: int) -> dict:
     compiled = load("attitude", backend="compiled")
     P0 = np.diag([1e-6] * 3 + [1e-12] * 3)      # stays far from |δp| = 1 over a propagation-only record
     results = {}
     for kind in KINDS:
         row = {"sigma_points": SIGMA_POINTS[kind]}
+        q0, omega, z = _inputs(steps, True)
+        filt = AttitudeFilter(compiled, kind, q0, np.zeros(3), P0)
+        filt._set_step(omega[0], 0.25)
+        filt._buffers["z"][:] = z[0]
+        filt._buffers["mask"][0] = 1.0
+        row["kernel_predict_us"] = _kernel_us(filt, filt._predict, repeats, steps)
+        row["kernel_step_with_update_us"] = _kernel_us(filt, filt._step, repeats, steps)
+        row["run_loop_step_with_update_us"] = _median_us(
+            lambda: AttitudeFilter(compiled, kind, q0, np.zeros(3), P0).run(omega, 0.25, z), repeats, steps)
         for label, with_star in (("propagate", False), ("propagate_update", True)):
-            q0, omega, z = _inputs(steps, with_star)
-            stars = [None if not with_star else zi for zi in z]
+            stars = [zi if with_star else None for zi in z]
 
             def step_loop():
-                filt = AttitudeFilter(compiled, kind, q0, np.zeros(3), P0)
+                f = AttitudeFilter(compiled, kind, q0, np.zeros(3), P0)
                 for w, zi in zip(omega, stars):
-                    filt.step(w, 0.25, zi)
-
-            def run_loop():
-                AttitudeFilter(compiled, kind, q0, np.zeros(3), P0).run(omega, 0.25, z)
+                    f.step(w, 0.25, zi)
 
             def reference_loop():
-                filt = ReferenceAttitudeFilter(kind, q0, np.zeros(3), P0)
+                f = ReferenceAttitudeFilter(kind, q0, np.zeros(3), P0)
                 for w, zi in zip(omega[:reference_steps], stars[:reference_steps]):
-                    filt.step(w, 0.25, zi)
+                    f.step(w, 0.25, zi)
 
-            row[label] = {"compiled_step_us": _median_us(step_loop, repeats, steps),
-                          "compiled_run_us": _median_us(run_loop, repeats, steps),
-                          "numpy_reference_us": _median_us(reference_loop, max(1, repeats // 3), reference_steps)}
+            row[f"python_filter_step_{label}_us"] = _median_us(step_loop, repeats, steps)
+            row[f"numpy_reference_{label}_us"] = _median_us(reference_loop, max(1, repeats // 3), reference_steps)
         results[kind] = row
-    for label in ("propagate", "propagate_update"):
-        ukf, aukf = results["ukf"][label]["compiled_run_us"], results["aukf"][label]["compiled_run_us"]
-        results.setdefault("ratios", {})[f"augmented_over_separated_{label}"] = aukf / ukf
-        results["ratios"][f"ukf_over_mekf_{label}"] = ukf / results["mekf"][label]["compiled_run_us"]
+    results["ratios"] = {
+        "augmented_over_separated_predict": results["aukf"]["kernel_predict_us"] / results["ukf"]["kernel_predict_us"],
+        "augmented_over_separated_step": results["aukf"]["kernel_step_with_update_us"]
+        / results["ukf"]["kernel_step_with_update_us"],
+        "ukf_over_mekf_step": results["ukf"]["kernel_step_with_update_us"]
+        / results["mekf"]["kernel_step_with_update_us"],
+        "numpy_over_compiled_ukf_step": results["ukf"]["numpy_reference_propagate_update_us"]
+        / results["ukf"]["kernel_step_with_update_us"],
+    }
     return results
 
 
@@ -93,14 +115,15 @@ def run(args) -> int:
     if args.json:
         print(json.dumps(results, indent=1))
         return 0
-    print("paper 000 attitude filters, µs per step (median)")
-    print(f"{'filter':<6} {'sigma pts (prop/upd)':>21} {'step':>8} {'':<18} {'C step':>9} {'C run':>9} {'NumPy':>10}")
+    print("paper 000 attitude filters, µs per step (median); kernel = one bound C call, run = C time loop")
+    print(f"{'filter':<6} {'sigma pts prop/upd':>18} {'predict':>9} {'step+upd':>9} {'run/step':>9} "
+          f"{'py step':>9} {'py step+upd':>11} {'NumPy':>9} {'NumPy+upd':>10}")
     for kind in KINDS:
-        sp = results[kind]["sigma_points"]
-        for label in ("propagate", "propagate_update"):
-            r = results[kind][label]
-            print(f"{kind:<6} {sp['propagation']:>10}/{sp['update']:<10} {label:>26} {r['compiled_step_us']:>9.2f} "
-                  f"{r['compiled_run_us']:>9.2f} {r['numpy_reference_us']:>10.0f}")
+        r, sp = results[kind], results[kind]["sigma_points"]
+        print(f"{kind:<6} {sp['propagation']:>9}/{sp['update']:<8} {r['kernel_predict_us']:>9.2f} "
+              f"{r['kernel_step_with_update_us']:>9.2f} {r['run_loop_step_with_update_us']:>9.2f} "
+              f"{r['python_filter_step_propagate_us']:>9.2f} {r['python_filter_step_propagate_update_us']:>11.2f} "
+              f"{r['numpy_reference_propagate_us']:>9.0f} {r['numpy_reference_propagate_update_us']:>10.0f}")
     for name, value in results["ratios"].items():
         print(f"{name}: {value:.2f}")
     return 0
