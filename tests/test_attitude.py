@@ -187,6 +187,18 @@ def test_quaternion_norm_stays_unit(compiled, kind):
     assert final_error < np.deg2rad(0.1)
 
 
+@pytest.mark.parametrize("kind", ["mekf", "ukf", "aukf"])
+def test_quaternion_norm_without_star_tracker(compiled, kind):
+    """Propagation only at a constant rate, where rounding in Ω_k (45) repeats identically each step."""
+    _, q0 = initial_quaternion(7, error_deg=0.0)
+    n = 20_000
+    omega = np.tile(np.random.default_rng(8).normal(scale=0.02, size=3), (n, 1))
+    P_small = np.diag([1e-10] * 3 + [1e-16] * 3)
+    result = AttitudeFilter(compiled, kind, q0, np.zeros(3), P_small).run(omega, 0.25, np.full((n, 4), np.nan))
+    assert not result.failed_steps.size
+    assert np.abs(np.linalg.norm(result.x[:, :4], axis=1) - 1).max() < 1e-12
+
+
 # ---------------------------------------------------------------------- guards and bad input
 @pytest.mark.parametrize("kind", ["ukf", "aukf"])
 def test_eq41_guard_is_a_domain_error(compiled, kind):
