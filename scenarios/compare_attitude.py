@@ -23,6 +23,8 @@ Metrics, per filter, over the last half of the run and all runs: RMS of the atti
 (deg), 3σ = 3 × the largest per-axis RMS of the error rotation vector (deg; the requirement is
 0.025° 3σ), RMS of the bias error norm; a run has converged when it had no failed step and its
 last-half RMS attitude error is below 0.1°. UKF improvement = (MEKF - UKF) / MEKF RMS, in %.
+Transient: RMS over the first 300 s, and the times after which the RMS-over-runs error stays
+below 1° and 0.1°.
 """
 from __future__ import annotations
 
@@ -53,6 +55,7 @@ SLEW_ANGLE = np.deg2rad(30.0)           # rad, roll slew
 SLEW_STARTS = (1200.0, 2400.0)          # s (out, back)
 SLEW_DURATION = 300.0                   # s
 CONVERGED_RMS_DEG = 0.1
+TRANSIENT_WINDOW = 300.0                # s, for the transient RMS
 FILTERS = ("mekf", "ukf")
 
 
@@ -160,8 +163,18 @@ def campaign(scenario: str, runs: int, duration: float, bias_per_axis: float, se
             "times": (np.arange(n) + 1) * GYRO_PERIOD, "half": half}
 
 
+def settling_time(times: np.ndarray, error: np.ndarray, threshold: float) -> float:
+    """First time after which ``error`` stays below ``threshold`` (NaN if it never does)."""
+    above = np.flatnonzero(~(error < threshold))
+    if above.size == 0:
+        return float(times[0])
+    return float(times[above[-1] + 1]) if above[-1] + 1 < times.size else float("nan")
+
+
 def filter_metrics(data: dict, name: str) -> dict:
     half = data["half"]
+    rms_history = np.sqrt(np.mean(data["angle"][name] ** 2, axis=0))
+    transient = data["times"] <= TRANSIENT_WINDOW
     angle, bias = data["angle"][name][:, half:], data["bias"][name][:, half:]
     run_rms = np.sqrt(np.mean(angle ** 2, axis=1))
     converged = (run_rms < CONVERGED_RMS_DEG) & (data["failed"][name] == 0) & np.isfinite(run_rms)
@@ -180,6 +193,9 @@ def filter_metrics(data: dict, name: str) -> dict:
         "runs_with_failed_steps": int((data["failed"][name] > 0).sum()),
         "failed_steps_total": int(data["failed"][name].sum()),
         "meets_0.025deg_3sigma": bool(three_sigma < att.ATTITUDE_REQUIREMENT_3SIGMA_DEG),
+        "transient_rms_deg_first_300s": float(np.sqrt(np.mean(data["angle"][name][:, transient] ** 2))),
+        "time_to_1deg_s": settling_time(data["times"], rms_history, 1.0),
+        "time_to_0.1deg_s": settling_time(data["times"], rms_history, 0.1),
         "filter_seconds_per_run": data["seconds"][name] / len(run_rms),
     }
 
