@@ -36,6 +36,17 @@ times with trace normalisation (A ← A²/tr A², i.e. M^(2^k): the other eigen-
 (λ_j/λ_1)^(2^k)); the column with the largest diagonal is then polished by ``MEAN_POLISH`` power
 steps and its sign aligned with a reference quaternion. Fixed work, branch-free, no LAPACK.
 
+Readings of the paper (where the printed text is ambiguous or mistyped):
+
+- Eq (12) prints κ/(2(2n+κ)) for the outer weights; 1/(2(2n+κ)) is used (weights sum to 1).
+- Eq (34) prints δp_i = -Ψᵀ(q_i) q; with the product (23) the vector part of q_i ⊗ q⁻¹ is
+  -Ξᵀ(q_i) q (tested). For the scalar weights used here N (36) is the same either way,
+  since Ψ Ψᵀ = Ξ Ξᵀ = I - q qᵀ.
+- Eq (48) spreads the star-tracker noise as an error-quaternion vector part. Here η_s is a
+  rotation vector (Table 1's σ_s read as angles per axis) and the noise sigma points go through
+  the model's star tracker (30) itself, which is exact and has no |δp| < 1 limit.
+- κ is not given: the default κ = 1 keeps every weight positive (κ = 3 - n would make W_0 < 0).
+
 Failures are status codes: a sigma vector or a correction with |δp| >= 1 (eq (41)/(52)) or
 n + κ <= 0 gives SYMKF_ERR_DOMAIN; a non-positive-definite P, Q, R or innovation covariance
 gives SYMKF_ERR_NOT_PD; a star-tracker quaternion whose norm is off 1 by more than
