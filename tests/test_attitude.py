@@ -1,6 +1,5 @@
 """Attitude model and filters of paper 000: model equations, eigen mean, compiled == NumPy reference,
 quaternion norm, the eq (41) guard and bad-input rules."""
-import casadi as ca
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
