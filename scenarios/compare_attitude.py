@@ -224,7 +224,7 @@ def plot(data: dict, out: Path, scenario: str) -> None:
         for name in FILTERS:
             values = data[key][name] * scale
             ax.semilogy(data["times"], values[0], lw=0.4, alpha=0.4, color="C0" if name == "mekf" else "C1")
-            ax.semilogy(data["times"], np.sqrt(np.mean(values ** 2, axis=0)), lw=1.4,
+            ax.semilogy(data["times"], np.sqrt(np.mean(values ** 2, axis=0)), lw=1.4, ls="-" if name == "mekf" else "--",
                         color="C0" if name == "mekf" else "C1", label=f"{labels[name]}, RMS over runs")
         if key == "angle":
             ax.axhline(att.ATTITUDE_REQUIREMENT_3SIGMA_DEG, color="k", ls="--", lw=0.8, label="0.025° requirement")
@@ -301,10 +301,12 @@ def _print(summary: dict, out: Path) -> None:
     print(f"paper 000 scenario {summary['scenario']}: {summary['runs']} runs x {summary['duration_s']:.0f} s -> {out}")
     print(f"{'filter':<6} {'RMS deg':>10} {'3sigma deg':>11} {'bias deg/h':>11} {'converged':>10} {'failed steps':>13}")
     for name, m in summary["filters"].items():
-        print(f"{name:<6} {m['attitude_rms_deg']:>10.5f} {m['attitude_3sigma_deg']:>11.5f} {m['bias_rms_deg_h']:>11.3f} "
+        print(f"{name:<6} {m['attitude_rms_deg']:>10.5f} {m['attitude_3sigma_deg']:>11.5f} "
+              f"{m['bias_rms_deg_h']:>11.3f} "
               f"{m['converged_runs']:>6}/{summary['runs']:<3} {m['failed_steps_total']:>13}")
     print(f"UKF improvement over MEKF: {summary['ukf_improvement_percent']:.1f} %")
     if "literal_bias" in summary:
         lit = summary["literal_bias"]["filters"]
         print("literal 2.0 rad/s: " + ", ".join(
-            f"{n} converged {m['converged_runs']}/{summary['runs']}, RMS {m['attitude_rms_deg']:.3g} deg" for n, m in lit.items()))
+            f"{n} converged {m['converged_runs']}/{summary['runs']}, RMS {m['attitude_rms_deg']:.3g} deg"
+            for n, m in lit.items()))

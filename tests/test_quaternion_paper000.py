@@ -16,8 +16,10 @@ def evaluate(expression_builder, *values):
     out = expression_builder(*symbols)
     outputs = out if isinstance(out, tuple) else (out,)
     f = ca.Function("f", symbols, list(outputs))
-    results = [np.array(r) for r in f(*[np.ravel(v) for v in values])] if len(outputs) > 1 else [np.array(f(*[np.ravel(v) for v in values]))]
-    return results if len(outputs) > 1 else results[0]
+    results = f(*[np.ravel(v) for v in values])
+    if len(outputs) == 1:
+        return np.array(results)
+    return [np.array(r) for r in results]
 
 
 def same_rotation(q1, q2, atol=1e-12):

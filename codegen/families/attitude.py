@@ -281,7 +281,8 @@ def mekf_kernels(a: AttitudeSymbols, fns: AttitudeFunctions) -> list[Kernel]:
     P_pred = linalg.symmetrize(F @ a.sym["P"] @ F.T + G @ (a.sym["Q"] / s["dt"]) @ G.T)
     _, q_pd = linalg.cholesky(a.sym["Q"])
     status = _status([(s["dt"] > 0, STATUS_DOMAIN), (q_pd, STATUS_NOT_PD)])
-    predict = a.kernel("mekf_predict", "MEKF propagation (44)-(45): q̂ by Ω_k(ω_g + b̂), P = F P Fᵀ + G (Q/dt) Gᵀ.",
+    predict = a.kernel("mekf_predict",
+                       "MEKF propagation (44)-(45): q̂ by Ω_k(ω_g + b̂), P = F P Fᵀ + G (Q/dt) Gᵀ.",
                        MEKF_PREDICT_INPUTS, [("x", ca.vertcat(q_pred, b_pred)), ("P", P_pred), ("status", status)])
 
     z_unit, finite, unit = _measurement_checks(a.sym["z"])
