@@ -2,6 +2,7 @@
 
     symkf compare attitude --scenario I  --runs 50 --out results/attitude
     symkf compare attitude --scenario II --runs 50 --out results/attitude
+    symkf compare attitude --scenario II --runs 10 --initial-bias 0.7    # bias sweep (rad/s per axis)
 
 Truth motion (the paper does not give one): an Earth-pointing LEO spacecraft, i.e. a constant
 orbit rate 2π/5830 s about body -y (pitch), plus two roll slews of 30° (out at t = 1200 s, back
