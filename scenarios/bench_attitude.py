@@ -1,0 +1,129 @@
+"""Paper 000's efficiency claim: sigma points and µs per step of the MEKF, the paper's separated-space
+UKF ([x, w] and [x, v]) and the full augmented UKF ([x, w, v]).
+
+    symkf bench attitude [--json] [--steps N] [--repeats R]
+
+For each filter: the predict kernel and the step kernel (propagation + star-tracker update) as
+one bound C call each, the C run loop (µs per step, update every step), the Python filter
+object's step (propagation only / with update), and the NumPy reference (plain Python).
+Medians over ``--repeats``; the machine's load shows in the spread, so read ratios, not digits.
+"""
+from __future__ import annotations
+
+import json
+import time
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from ..codegen.families import attitude as family
+from ..runtime import load
+from ..runtime.attitude import AttitudeFilter, ReferenceAttitudeFilter
+
+KINDS = ("mekf", "ukf", "aukf")
+SIGMA_POINTS = {
+    "mekf": {"propagation": 0, "update": 0, "cholesky": "none (3x3 solve of S)"},
+    "ukf": {"propagation": family.N_PROPAGATION_POINTS, "update": family.N_UPDATE_POINTS,
+            "cholesky": "6x6 P + 6x6 Q (propagation), 6x6 P + 3x3 R + 3x3 P^yy (update)"},
+    "aukf": {"propagation": family.N_AUGMENTED_POINTS, "update": family.N_AUGMENTED_POINTS,
+             "cholesky": "15x15 blockdiag(P, Q, R) + 3x3 P^yy, once per step"},
+}
+
+
+def _inputs(n_steps: int, with_star: bool, seed: int = 1):
+    rng = np.random.default_rng(seed)
+    truth = Rotation.random(random_state=seed)
+    omega = rng.normal(scale=0.01, size=(n_steps, 3))
+    stars = truth * Rotation.from_rotvec(rng.normal(scale=1e-3, size=(n_steps, 3)))
+    z = stars.as_quat() if with_star else np.full((n_steps, 4), np.nan)
+    return truth.as_quat(), omega, z
+
+
+def _median_us(function, repeats: int, steps: int) -> float:
+    samples = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        function()
+        samples.append((time.perf_counter() - start) / steps * 1e6)
+    return float(np.median(samples))
+
+
+def _kernel_us(filt: AttitudeFilter, call, repeats: int, calls: int) -> float:
+    """One bound kernel call (x, P restored after each, so every call does the same work)."""
+    x0, P0 = filt._buffers["x"].copy(), filt._buffers["P"].copy()
+
+    def loop():
+        for _ in range(calls):
+            call()
+            filt._buffers["x"][:] = x0
+            filt._buffers["P"][:] = P0
+    return _median_us(loop, repeats, calls)
+
+
+def bench(steps: int, repeats: int, reference_steps: int) -> dict:
+    compiled = load("attitude", backend="compiled")
+    P0 = np.diag([1e-6] * 3 + [1e-12] * 3)      # stays far from |δp| = 1 over a propagation-only record
+    results = {}
+    for kind in KINDS:
+        row = {"sigma_points": SIGMA_POINTS[kind]}
+        q0, omega, z = _inputs(steps, True)
+        filt = AttitudeFilter(compiled, kind, q0, np.zeros(3), P0)
+        filt._set_step(omega[0], 0.25)
+        filt._buffers["z"][:] = z[0]
+        filt._buffers["mask"][0] = 1.0
+        row["kernel_predict_us"] = _kernel_us(filt, filt._predict, repeats, steps)
+        row["kernel_step_with_update_us"] = _kernel_us(filt, filt._step, repeats, steps)
+        row["run_loop_step_with_update_us"] = _median_us(
+            lambda: AttitudeFilter(compiled, kind, q0, np.zeros(3), P0).run(omega, 0.25, z), repeats, steps)
+        for label, with_star in (("propagate", False), ("propagate_update", True)):
+            stars = [zi if with_star else None for zi in z]
+
+            def step_loop():
+                f = AttitudeFilter(compiled, kind, q0, np.zeros(3), P0)
+                for w, zi in zip(omega, stars):
+                    f.step(w, 0.25, zi)
+
+            def reference_loop():
+                f = ReferenceAttitudeFilter(kind, q0, np.zeros(3), P0)
+                for w, zi in zip(omega[:reference_steps], stars[:reference_steps]):
+                    f.step(w, 0.25, zi)
+
+            row[f"python_filter_step_{label}_us"] = _median_us(step_loop, repeats, steps)
+            row[f"numpy_reference_{label}_us"] = _median_us(reference_loop, max(1, repeats // 3), reference_steps)
+        results[kind] = row
+    results["ratios"] = {
+        "augmented_over_separated_predict": results["aukf"]["kernel_predict_us"] / results["ukf"]["kernel_predict_us"],
+        "augmented_over_separated_step": results["aukf"]["kernel_step_with_update_us"]
+        / results["ukf"]["kernel_step_with_update_us"],
+        "ukf_over_mekf_step": results["ukf"]["kernel_step_with_update_us"]
+        / results["mekf"]["kernel_step_with_update_us"],
+        "numpy_over_compiled_ukf_step": results["ukf"]["numpy_reference_propagate_update_us"]
+        / results["ukf"]["kernel_step_with_update_us"],
+    }
+    return results
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    parser.add_argument("--steps", type=int, default=2000, help="steps per timing (default 2000)")
+    parser.add_argument("--repeats", type=int, default=7, help="repeats, median reported (default 7)")
+    parser.add_argument("--reference-steps", type=int, default=40, help="steps timed for the NumPy reference")
+
+
+def run(args) -> int:
+    results = bench(args.steps, args.repeats, args.reference_steps)
+    if args.json:
+        print(json.dumps(results, indent=1))
+        return 0
+    print("paper 000 attitude filters, µs per step (median); kernel = one bound C call, run = C time loop")
+    print(f"{'filter':<6} {'sigma pts prop/upd':>18} {'predict':>9} {'step+upd':>9} {'run/step':>9} "
+          f"{'py step':>9} {'py step+upd':>11} {'NumPy':>9} {'NumPy+upd':>10}")
+    for kind in KINDS:
+        r, sp = results[kind], results[kind]["sigma_points"]
+        print(f"{kind:<6} {sp['propagation']:>9}/{sp['update']:<8} {r['kernel_predict_us']:>9.2f} "
+              f"{r['kernel_step_with_update_us']:>9.2f} {r['run_loop_step_with_update_us']:>9.2f} "
+              f"{r['python_filter_step_propagate_us']:>9.2f} {r['python_filter_step_propagate_update_us']:>11.2f} "
+              f"{r['numpy_reference_propagate_us']:>9.0f} {r['numpy_reference_propagate_update_us']:>10.0f}")
+    for name, value in results["ratios"].items():
+        print(f"{name}: {value:.2f}")
+    return 0
