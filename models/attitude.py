@@ -105,4 +105,5 @@ def build() -> Model:
                                        for i, c in enumerate(("x", "y", "z", "w"))],
                       sigma=list(STAR_TRACKER_SIGMA / 2) + [1e-9])
     model.filters = ("attitude",)
+    model.generic_kernels = ("f", "h")        # the filters use eq (45), not the generic RK4 f_d and its Jacobian
     return model
