@@ -44,6 +44,20 @@ def as_array(name: str, value, shape: tuple[int, ...]) -> np.ndarray:
     return array
 
 
+def covariance(name: str, value, n: int) -> np.ndarray:
+    """``value`` as an n x n covariance: finite, symmetric and positive definite, else ValueError."""
+    value = as_array(name, value, (n, n))
+    if not np.isfinite(value).all():
+        raise ValueError(f"{name}: contains NaN or Inf")
+    if not np.allclose(value, value.T, rtol=1e-12, atol=0):
+        raise ValueError(f"{name}: not symmetric")
+    try:
+        np.linalg.cholesky(value)
+    except np.linalg.LinAlgError:
+        raise ValueError(f"{name}: not positive definite") from None
+    return value
+
+
 @dataclass
 class MeasurementBuffers:
     """Per-measurement buffers shared by the update and step kernels of one filter."""
@@ -143,16 +157,7 @@ class KalmanFilter:
 
     @P.setter
     def P(self, value) -> None:
-        value = as_array("P", value, (self.n, self.n))
-        if not np.isfinite(value).all():
-            raise ValueError("P: contains NaN or Inf")
-        if not np.allclose(value, value.T, rtol=1e-12, atol=0):
-            raise ValueError("P: not symmetric")
-        try:
-            np.linalg.cholesky(value)
-        except np.linalg.LinAlgError:
-            raise ValueError("P: not positive definite") from None
-        self._buffers["P"][:] = value
+        self._buffers["P"][:] = covariance("P", value, self.n)
 
     @property
     def Q(self) -> np.ndarray:
