@@ -197,7 +197,7 @@ def _aerodynamics(V, r, alpha, area):
 def build() -> Model:
     """The launcher model: dynamics eq (6) with forces eq (5), radar eq (7)."""
     m = Model("launcher", "KSLV-I launcher over a rotating Earth, three tracking radars",
-                  paper="Baek et al. 2005, J. Astron. Space Sci. 22(4) (paper 004)")
+              paper="Baek et al. 2005, J. Astron. Space Sci. 22(4) (paper 004)")
     V = m.state("V", "m/s", "speed relative to the rotating Earth")
     gamma = m.state("gamma", "rad", "flight-path angle above the local horizontal")
     psi = m.state("psi", "rad", "heading, from East towards North")
