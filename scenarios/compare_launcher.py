@@ -117,11 +117,12 @@ def markdown_table(results: list[CaseResult], rows: list[dict]) -> str:
             row = next(r for r in rows if r["state"] == state and r["case"] == case)
             cells += [f"{row['ekf']:.3g} ({row['paper_ekf']:.3g})", f"{row['ukf']:.3g} ({row['paper_ukf']:.3g})"]
         lines.append(f"| {state} ({UNITS[state]}) | " + " | ".join(cells) + " |")
-    diverged = [f"{r.case.label} {family.upper()}: runs {r.diverged_runs[family]}" for r in results
-                for family in FILTERS if r.diverged_runs[family]]
     runs = results[0].errors["ekf"].runs
-    lines += ["", f"Diverged runs (an angle error above {C.DIVERGED_ANGLE_RAD} rad at any time), of {runs}: "
-              + ("; ".join(diverged) if diverged else "none")]
+    for kind, threshold in (("diverged", f"angle error still above {C.DIVERGED_ANGLE_RAD} rad in the second half"),
+                            ("excursion", f"angle error above {C.EXCURSION_ANGLE_RAD} rad early, then recovered")):
+        listed = [f"{r.case.label} {family.upper()} {getattr(r, kind + '_runs')[family]}" for r in results
+                  for family in FILTERS if getattr(r, kind + "_runs")[family]]
+        lines += ["", f"Runs {kind} ({threshold}), of {runs}: " + ("; ".join(listed) if listed else "none")]
     return "\n".join(lines) + "\n"
 
 
@@ -139,6 +140,8 @@ def make_summary(results: list[CaseResult], args, wall: float) -> dict:
                 "us_per_step_in_run": 1e6 * result.wall_s[family] / (len(result.times) * result.errors[family].runs),
                 "failed_steps": result.failed_steps[family],
                 "diverged_runs": result.diverged_runs[family],
+                "excursion_runs": result.excursion_runs[family],
+                "rms_eq11_without_diverged_runs": dict(zip(STATE_NAMES, result.whole_flight(family, True).tolist())),
             }
         cases[result.case.label] = entry
     return {"runs": args.runs, "seed": args.seed, "duration_s": args.duration, "wall_s": wall,

@@ -50,10 +50,12 @@ def test_numbers_are_plausible(short_campaign):
 
 def test_same_seed_same_draws_different_seed_different_draws(launcher_compiled):
     track = C.radar_track(np.arange(5) * 0.05, C.propagate(np.arange(5) * 0.05))
-    one, same, other = C.Campaign(1, 11), C.Campaign(1, 11), C.Campaign(1, 12)
-    np.testing.assert_array_equal(one.measurements(0, 0, track), same.measurements(0, 0, track))
-    assert not np.array_equal(one.measurements(0, 0, track), other.measurements(0, 0, track))
-    assert not np.array_equal(one.measurements(0, 0, track), one.measurements(0, 1, track))
+    one, same, other = C.Campaign(1, 11), C.Campaign(1, 11, rates=(20,)), C.Campaign(1, 12)
+    case = C.Case(20, "small")
+    np.testing.assert_array_equal(one.measurements(case, 0, track), same.measurements(case, 0, track))
+    assert not np.array_equal(one.measurements(case, 0, track), other.measurements(case, 0, track))
+    assert not np.array_equal(one.measurements(case, 0, track), one.measurements(case, 1, track))
+    assert not np.array_equal(one.measurements(case, 0, track), one.measurements(C.Case(20, "large"), 0, track))
 
 
 def test_campaign_repeats_exactly(launcher_compiled):
