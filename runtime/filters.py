@@ -134,6 +134,14 @@ class KalmanFilter:
             self._step_calls[name] = backend.bind(f"{self.family}_step_{name}", merged)
         self._backend = backend
 
+    def kernel_call(self, kind: str, measurement: str | None = None):
+        """The bound compiled call behind ``predict``/``update``/``step`` (no argument checks):
+        for benchmarks that time the C call alone. Returns a callable giving the status code."""
+        if kind == "predict":
+            return self._predict_call
+        calls = {"update": self._update_calls, "step": self._step_calls}[kind]
+        return calls[measurement or self._default_measurement]
+
     # ------------------------------------------------------------------ state views
     @property
     def x(self) -> np.ndarray:
