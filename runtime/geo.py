@@ -28,6 +28,7 @@ from ..codegen.families.geo import reference_functions
 from ..models import geo_satellite as geo
 from ..models import get_model
 from .backends import SymkfError
+from .reference import wrap_angle
 
 BASE_RATE_HZ = geo.GYRO_RATE_HZ
 TICK = 1.0 / BASE_RATE_HZ
@@ -119,7 +120,7 @@ class NumpyCDEKF:
         R = self.R[measurement] * np.outer(mask, mask) + np.diag(1.0 - mask)
         innovation = np.where(mask > 0.5, np.nan_to_num(z) - z_pred, 0.0)
         wrap = self.wrap[measurement]
-        innovation[wrap] = np.arctan2(np.sin(innovation[wrap]), np.cos(innovation[wrap]))
+        innovation[wrap] = wrap_angle(innovation[wrap])
         U = H @ self.P
         S = U @ H.T + R
         K = np.linalg.solve(S, U).T

@@ -16,8 +16,9 @@ from ..codegen.filters import ModelFunctions
 from ..models import get_model
 
 
-def _wrap(a):
-    return np.arctan2(np.sin(a), np.cos(a))
+def wrap_angle(a):
+    """Wrap to (-pi, pi], the same formula as the generated code (codegen.linalg.wrap_angle)."""
+    return a - 2 * np.pi * np.ceil((a - np.pi) / (2 * np.pi))
 
 
 class ReferenceFilter:
@@ -76,8 +77,8 @@ class ReferenceFilter:
             points, weights = self._sigma_points(self.x, self.P)
             predicted = [self._h(name, t, pt, q) for pt in points]
             ref = predicted[0]
-            z_pred = ref + sum(w * np.where(wrap, _wrap(zi - ref), zi - ref) for w, zi in zip(weights, predicted))
-            dz = [mask * np.where(wrap, _wrap(zi - z_pred), zi - z_pred) for zi in predicted]
+            z_pred = ref + sum(w * np.where(wrap, wrap_angle(zi - ref), zi - ref) for w, zi in zip(weights, predicted))
+            dz = [mask * np.where(wrap, wrap_angle(zi - z_pred), zi - z_pred) for zi in predicted]
             dx = [pt - self.x for pt in points]
             S = _sym(sum(w * np.outer(d, d) for w, d in zip(weights, dz)) + R)
             Pxz = sum(w * np.outer(a, b) for w, a, b in zip(weights, dx, dz))
@@ -106,7 +107,7 @@ class ReferenceFilter:
 
     @staticmethod
     def _innovation(z, z_pred, mask, wrap):
-        d = np.where(wrap, _wrap(z - z_pred), z - z_pred)
+        d = np.where(wrap, wrap_angle(z - z_pred), z - z_pred)
         return np.where(mask > 0.5, d, 0.0)
 
 

@@ -11,6 +11,7 @@ import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter, JulierSigmaPoints, UnscentedKalmanFilter
 
 from ..models import launcher as L
+from ..runtime.reference import wrap_angle
 
 
 class _ModelCalls:
@@ -55,7 +56,7 @@ class _ModelCalls:
 
 def _residual(a, b):
     d = np.subtract(a, b)
-    d[2] = np.arctan2(np.sin(d[2]), np.cos(d[2]))
+    d[2] = wrap_angle(d[2])
     return d
 
 

@@ -18,6 +18,7 @@ import numpy as np
 from ..codegen.discretize import continuous_dynamics, measurement_function
 from ..models import get_model
 from ..models import launcher as L
+from ..runtime.reference import wrap_angle
 
 #: Phase boundaries of Table 2 (s).
 PHASES = (0.0, L.T_STAGE1_BURNOUT, L.T_FAIRING, L.T_STAGE2_IGNITION, L.T_INSERTION)
@@ -79,7 +80,7 @@ class RadarTrack:
     def noisy(self, rng: np.random.Generator) -> np.ndarray:
         """Eq (7): clean values plus sigma times a standard normal draw per component."""
         z = self.clean + rng.standard_normal(self.clean.shape) * np.array(L.RADAR_SIGMA)
-        z[:, 2] = np.angle(np.exp(1j * z[:, 2]))        # azimuth back into (-pi, pi]
+        z[:, 2] = wrap_angle(z[:, 2])                    # azimuth back into (-pi, pi]
         return z
 
 
