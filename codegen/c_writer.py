@@ -192,7 +192,7 @@ def header(bundle: Bundle, content_hash: str) -> str:
     for code, (name, meaning) in STATUS_CODES.items():
         lines.append(f"#ifndef {name}\n#define {name} {code} /* {meaning} */\n#endif")
     lines += ["", "#ifdef __cplusplus", 'extern "C" {', "#endif", "",
-              f"/* The content hash this library was generated with (checked by the Python loader). */",
+              "/* The content hash this library was generated with (checked by the Python loader). */",
               f"const char *{model}_content_hash(void);", ""]
     for kernel in bundle.kernels:
         f = kernel.function
@@ -204,7 +204,7 @@ def header(bundle: Bundle, content_hash: str) -> str:
                   f"(+ outputs). {f.n_instructions()} instructions.", " */",
                   f"#define {prefix}_WORK_BYTES {work}",
                   f"int {model}_{kernel.name}({', '.join(p for p, _ in _param_list(kernel))});",
-                  f"/** The same, arguments as one pointer array in the order above. */",
+                  "/** The same, arguments as one pointer array in the order above. */",
                   f"int {model}_{kernel.name}_v(casadi_real *const *args);", ""]
         if kernel.runnable:
             lines += ["/**", f" * {model}_{kernel.name}_run: n_steps calls of {model}_{kernel.name} in a loop.",

@@ -1,6 +1,5 @@
 """Every generated C function equals CasADi's own evaluation of the same Function (<= 1e-12 rel)."""
 import numpy as np
-import pytest
 
 from symkf.models import launcher as L
 
