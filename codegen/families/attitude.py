@@ -324,22 +324,30 @@ def sigma_mean_and_deviations(fns: AttitudeFunctions, q_points, b_points, weight
     return q_mean, b_mean, deviations
 
 
-def ukf_predict_kernel(a: AttitudeSymbols, fns: AttitudeFunctions) -> Kernel:
+def _propagated_sigma_set(a: AttitudeSymbols, fns: AttitudeFunctions, factor, pd, dimension: int):
+    """Sigma points from a covariance factor whose first 12 rows span [dx, w], propagated through
+    (43)-(45), and their mean (15)/(38) and covariance; shared by both UKF forms."""
     s, kappa = a.base.sym, a.base.sym["kappa"]
     q_hat, b_hat = a.split_state()
-    dimension = N_ERROR + N_PROCESS_NOISE
-    factor, pd = _block_diagonal_factor(a.sym["P"], a.sym["Q"] / s["dt"])
     offsets = _sigma_offsets(factor, ca.sqrt(ca.fmax(dimension + kappa, 0)))
     weights = _ukf_weights(dimension, kappa)
     q_points, b_points, in_domain = propagate_sigma_set(
         fns, [o[0:6] for o in offsets], [o[6:12] for o in offsets], q_hat, b_hat, s["u"], s["dt"])
     q_mean, b_mean, dev = sigma_mean_and_deviations(fns, q_points, b_points, weights)
     P_pred = linalg.symmetrize(_symmetric_sum(weights, dev, dev))
-    status = _status([(s["dt"] > 0, STATUS_DOMAIN), (dimension + kappa > 0, STATUS_DOMAIN), (pd, STATUS_NOT_PD),
-                      (in_domain, STATUS_DOMAIN)])
+    checks = [(s["dt"] > 0, STATUS_DOMAIN), (dimension + kappa > 0, STATUS_DOMAIN), (pd, STATUS_NOT_PD),
+              (in_domain, STATUS_DOMAIN)]
+    return offsets, weights, q_points, q_mean, b_mean, dev, P_pred, checks
+
+
+def ukf_predict_kernel(a: AttitudeSymbols, fns: AttitudeFunctions) -> Kernel:
+    s = a.base.sym
+    factor, pd = _block_diagonal_factor(a.sym["P"], a.sym["Q"] / s["dt"])
+    _, _, _, q_mean, b_mean, _, P_pred, checks = _propagated_sigma_set(a, fns, factor, pd,
+                                                                       N_ERROR + N_PROCESS_NOISE)
     return a.kernel("ukf_predict", "Paper's UKF propagation in [x, w] (25 sigma points, eqs (9)-(15), (39)-(45), "
                     "quaternion mean (38)).", PREDICT_INPUTS,
-                    [("x", ca.vertcat(q_mean, b_mean)), ("P", P_pred), ("status", status)])
+                    [("x", ca.vertcat(q_mean, b_mean)), ("P", P_pred), ("status", _status(checks))])
 
 
 def sigma_update(fns: AttitudeFunctions, a: AttitudeSymbols, q_hat, b_hat, P, deviations, q_points, eta_points,
@@ -385,20 +393,10 @@ def ukf_update_kernel(a: AttitudeSymbols, fns: AttitudeFunctions) -> Kernel:
 # ---------------------------------------------------------------------- full augmented UKF
 def _augmented_propagation(a: AttitudeSymbols, fns: AttitudeFunctions):
     """The [x, w, v] sigma set (15 dims, 31 points, one full 15x15 Cholesky factor), propagated."""
-    s, kappa = a.base.sym, a.base.sym["kappa"]
-    q_hat, b_hat = a.split_state()
-    dimension = N_ERROR + N_PROCESS_NOISE + N_MEAS_NOISE
+    s = a.base.sym
     covariance = ca.diagcat(a.sym["P"], a.sym["Q"] / s["dt"], a.sym["R"])
     factor, pd = linalg.cholesky(covariance)          # the full factor, as an augmented UKF does
-    offsets = _sigma_offsets(factor, ca.sqrt(ca.fmax(dimension + kappa, 0)))
-    weights = _ukf_weights(dimension, kappa)
-    q_points, b_points, in_domain = propagate_sigma_set(
-        fns, [o[0:6] for o in offsets], [o[6:12] for o in offsets], q_hat, b_hat, s["u"], s["dt"])
-    q_pred, b_pred, dev = sigma_mean_and_deviations(fns, q_points, b_points, weights)
-    P_pred = linalg.symmetrize(_symmetric_sum(weights, dev, dev))
-    checks = [(s["dt"] > 0, STATUS_DOMAIN), (dimension + kappa > 0, STATUS_DOMAIN), (pd, STATUS_NOT_PD),
-              (in_domain, STATUS_DOMAIN)]
-    return offsets, weights, q_points, q_pred, b_pred, dev, P_pred, checks
+    return _propagated_sigma_set(a, fns, factor, pd, N_ERROR + N_PROCESS_NOISE + N_MEAS_NOISE)
 
 
 def augmented_predict_kernel(a: AttitudeSymbols, fns: AttitudeFunctions) -> Kernel:
