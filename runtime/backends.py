@@ -99,9 +99,9 @@ class CompiledBackend:
         pointers = (ctypes.c_void_p * max(len(info.pointer_names()), 1))(
             *[buffers[name].ctypes.data for name, _ in info.pointer_names()])
         function = getattr(self.lib, f"{self.model}_{kernel}_v")
-        function.argtypes = [ctypes.c_void_p]
-        function.restype = ctypes.c_int
-        return BoundCall(kernel, function, ctypes.addressof(pointers), keep_alive=(pointers, buffers))
+        function.argtypes = None           # a prebuilt byref needs no per-call conversion (measured
+        function.restype = ctypes.c_int    # 0.39 vs 0.62 us per call with argtypes + an int address)
+        return BoundCall(kernel, function, ctypes.byref(pointers), keep_alive=(pointers, buffers))
 
     def run_function(self, kernel: str):
         """``<model>_<kernel>_run`` with int/pointer argument types set."""
