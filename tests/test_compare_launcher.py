@@ -48,6 +48,14 @@ def test_numbers_are_plausible(short_campaign):
     assert ukf_20["r"] < 100 and ukf_20["V"] < 5          # m, m/s over the first minute
 
 
+def test_tuning_options_reach_the_filters(tmp_path, launcher_compiled):
+    assert main(["compare", "launcher", "--runs", "1", "--duration", "5", "--rates", "20", "--kappa", "1",
+                 "--q-scale", "10", "--out", str(tmp_path), "--quiet"]) == 0
+    tuning = json.loads((tmp_path / "summary.json").read_text())["tuning"]
+    assert tuning["kappa"] == 1.0 and tuning["Q"][0][0] == pytest.approx(10 * C.TUNING["Q"][0, 0])
+    assert main(["compare", "launcher", "--kappa", "-6", "--quiet", "--out", str(tmp_path)]) == 2
+
+
 def test_same_seed_same_draws_different_seed_different_draws(launcher_compiled):
     track = C.radar_track(np.arange(5) * 0.05, C.propagate(np.arange(5) * 0.05))
     one, same, other = C.Campaign(1, 11), C.Campaign(1, 11, rates=(20,)), C.Campaign(1, 12)
