@@ -159,6 +159,17 @@ def initial_state(guidance: dict | None = None) -> np.ndarray:
                      R_EARTH, LAUNCH_LONGITUDE, LAUNCH_LATITUDE])
 
 
+def inertial_speed(x):
+    """Speed in the non-rotating frame: the relative velocity of eq (4)'s (V, gamma, psi) in local
+    East-North-Up plus the Earth's rotation, omega r cos(phi) towards East (the paper's 8.038 km/s
+    boundary value is quoted as the orbital, i.e. inertial, perigee speed)."""
+    V, gamma, psi, r, phi = x[0], x[1], x[2], x[3], x[5]
+    east = V * ca.cos(gamma) * ca.cos(psi) + OMEGA_EARTH * r * ca.cos(phi)
+    north = V * ca.cos(gamma) * ca.sin(psi)
+    up = V * ca.sin(gamma)
+    return ca.sqrt(east**2 + north**2 + up**2)
+
+
 def _step(t, t0):
     """1 for t >= t0, else 0 (event switches of the thrust and mass schedule)."""
     return ca.if_else(t >= t0, 1.0, 0.0)

@@ -105,12 +105,3 @@ def events_table(guidance: dict | None = None) -> list[dict]:
                      "altitude_km": (x[3] - L.R_EARTH) / 1e3, "paper_speed_kms": speed_kms,
                      "speed_kms": x[0] / 1e3, "flight_path_angle_deg": np.degrees(x[1])})
     return rows
-
-
-def inertial_speed(state: np.ndarray) -> float:
-    """Speed in the non-rotating frame (the paper's 8.038 km/s is an orbital, i.e. inertial, speed)."""
-    V, gamma, psi, r, _, phi = state
-    v_east = V * np.cos(gamma) * np.cos(psi) + L.OMEGA_EARTH * r * np.cos(phi)
-    v_north = V * np.cos(gamma) * np.sin(psi)
-    v_up = V * np.sin(gamma)
-    return float(np.sqrt(v_east**2 + v_north**2 + v_up**2))
