@@ -27,7 +27,7 @@ from ..codegen.families import attitude as family
 from ..codegen.spec import STATUS_DOMAIN, STATUS_NONFINITE, STATUS_NOT_PD
 from ..models import attitude as model
 from .backends import SymkfError
-from .filters import as_array, covariance
+from .filters import as_array, covariance, read_only
 
 KINDS = ("mekf", "ukf", "aukf")
 #: UKF scaling κ used unless given: keeps every weight positive (paper 000 leaves κ open).
@@ -109,9 +109,7 @@ class AttitudeFilter:
 
     # ------------------------------------------------------------------ views
     def _view(self, name: str) -> np.ndarray:
-        view = self._buffers[name].view()
-        view.flags.writeable = False
-        return view
+        return read_only(self._buffers[name])
 
     x = property(lambda self: self._view("x"), doc="State [q; b].")
     P = property(lambda self: self._view("P"), doc="6x6 covariance of [δp; δb].")

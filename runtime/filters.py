@@ -44,6 +44,13 @@ def as_array(name: str, value, shape: tuple[int, ...]) -> np.ndarray:
     return array
 
 
+def read_only(array: np.ndarray) -> np.ndarray:
+    """A read-only view of a buffer the C code writes (users inspect it, never assign into it)."""
+    view = array.view()
+    view.flags.writeable = False
+    return view
+
+
 def covariance(name: str, value, n: int) -> np.ndarray:
     """``value`` as an n x n covariance: finite, symmetric and positive definite, else ValueError."""
     value = as_array(name, value, (n, n))
@@ -146,9 +153,7 @@ class KalmanFilter:
     @property
     def x(self) -> np.ndarray:
         """The state estimate (a read-only view of the buffer the C code writes)."""
-        view = self._buffers["x"].view()
-        view.flags.writeable = False
-        return view
+        return read_only(self._buffers["x"])
 
     @x.setter
     def x(self, value) -> None:
@@ -159,9 +164,7 @@ class KalmanFilter:
 
     @property
     def P(self) -> np.ndarray:
-        view = self._buffers["P"].view()
-        view.flags.writeable = False
-        return view
+        return read_only(self._buffers["P"])
 
     @P.setter
     def P(self, value) -> None:

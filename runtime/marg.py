@@ -31,6 +31,7 @@ from ..codegen.families.marg import FORMS, MODES, ZERO_NORM, marg_functions
 from ..models import quaternion as quat
 from ..models.marg import ALPHA_DEFAULT, BETA_MADGWICK
 from .backends import SymkfError
+from .filters import as_array, read_only
 
 #: +90° about z: left-multiplying a north-west-up orientation by it gives the east-north-up one.
 NWU_TO_ENU = np.array([0.0, 0.0, np.sqrt(0.5), np.sqrt(0.5)])
@@ -130,13 +131,6 @@ class MargRun:
         return np.flatnonzero(self.status)
 
 
-def _vector(name: str, value, size: int) -> np.ndarray:
-    array = np.asarray(value, dtype=float).reshape(-1) if np.ndim(value) <= 1 else None
-    if array is None or array.size != size:
-        raise ValueError(f"{name}: expected {size} numbers, got shape {np.shape(value)}")
-    return array
-
-
 def _series(name: str, value, n: int, width: int) -> np.ndarray:
     array = np.ascontiguousarray(value, dtype=float)
     expected = (n,) if width == 1 else (n, width)
@@ -198,13 +192,11 @@ class MargFilter:
 
     @property
     def q(self) -> np.ndarray:
-        view = self._buffers["x"].view()
-        view.flags.writeable = False
-        return view
+        return read_only(self._buffers["x"])
 
     @q.setter
     def q(self, value) -> None:
-        value = _vector("q", value, 4)
+        value = as_array("q", value, (4,))
         norm = np.linalg.norm(value)
         if not np.isfinite(value).all() or abs(norm - 1) > 1e-6:
             raise ValueError(f"q: expected a finite unit quaternion [x, y, z, w], got norm {norm}")
@@ -212,8 +204,8 @@ class MargFilter:
 
     # -------------------------------------------------------------- one sample
     def _load_sample(self, acc, mag) -> None:
-        acc = _vector("acc", acc, 3)
-        mag = np.zeros(3) if mag is None else _vector("mag", mag, 3)
+        acc = as_array("acc", acc, (3,))
+        mag = np.zeros(3) if mag is None else as_array("mag", mag, (3,))
         self._buffers["acc"][:], self._buffers["mag"][:] = acc, mag
 
     def initialize(self, acc, mag=None) -> np.ndarray:
@@ -228,7 +220,7 @@ class MargFilter:
 
     def step(self, dt: float, gyro, acc, mag=None) -> np.ndarray:
         """One sample: gyro (rad/s), acc, mag (any units; zero vector = skip that correction)."""
-        self._buffers["u"][:] = _vector("gyro", gyro, 3)
+        self._buffers["u"][:] = as_array("gyro", gyro, (3,))
         self._load_sample(acc, mag)
         self._buffers["dt"][0] = dt
         code = self._step()
