@@ -24,8 +24,7 @@ from pathlib import Path
 
 import casadi as ca
 
-from .. import PROJECT_ROOT
-from ..models import get_model, model_module
+from symkf.models import get_model, model_module
 from . import c_writer, families  # noqa: F401  (families register themselves on import)
 from .filters import FAMILIES, ModelFunctions, Symbols, model_kernels
 from .spec import Bundle, CodegenConfig
@@ -60,8 +59,9 @@ def build_root() -> Path:
     env = os.environ.get("SYMKF_BUILD_DIR")
     if env:
         return Path(env).resolve()
-    if (PROJECT_ROOT / "pyproject.toml").exists():
-        return PROJECT_ROOT / "build"
+    checkout = CODEGEN_DIR.parent
+    if (checkout / "pyproject.toml").exists():
+        return checkout / "build"
     return Path.cwd() / "build"
 
 

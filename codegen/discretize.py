@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import casadi as ca
 
-from ..models.base import Model
+from symkf.models.base import Model
 
 FUNCTION_OPTIONS = {"cse": True, "allow_duplicate_io_names": True}
 

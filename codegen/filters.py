@@ -20,7 +20,7 @@ from typing import Callable
 
 import casadi as ca
 
-from ..models.base import Model
+from symkf.models.base import Model
 from . import linalg
 from .discretize import FUNCTION_OPTIONS, continuous_dynamics, discrete_dynamics, measurement_function
 from .spec import STATUS_DOMAIN, STATUS_NOT_PD, Arg, CodegenConfig, Kernel

@@ -10,7 +10,7 @@ virtual machine (``backend.kind == "casadi-vm"``).
 """
 from __future__ import annotations
 
-from ..codegen import CompilerNotFound, build_model, generate, make_config
+from symkf.codegen import CompilerNotFound, build_model, generate, make_config
 from .backends import CompiledBackend, StaleLibraryError, SymkfError, VirtualMachineBackend
 from .filters import KalmanFilter, RunResult
 

@@ -23,9 +23,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..codegen.families import attitude as family
-from ..codegen.spec import STATUS_DOMAIN, STATUS_NONFINITE, STATUS_NOT_PD
-from ..models import attitude as model
+from symkf.codegen.families import attitude as family
+from symkf.codegen.spec import STATUS_DOMAIN, STATUS_NONFINITE, STATUS_NOT_PD
+from symkf.models import attitude as model
 from .backends import SymkfError
 from .filters import as_array, covariance, read_only
 

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..codegen.spec import STATUS_CODES, STATUS_NONFINITE, Bundle, Kernel
+from symkf.codegen.spec import STATUS_CODES, STATUS_NONFINITE, Bundle, Kernel
 
 
 class SymkfError(RuntimeError):

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..codegen.spec import STATUS_NONFINITE
+from symkf.codegen.spec import STATUS_NONFINITE
 from .backends import SymkfError
 
 

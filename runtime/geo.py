@@ -24,9 +24,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..codegen.families.geo import reference_functions
-from ..models import geo_satellite as geo
-from ..models import get_model
+from symkf.codegen.families.geo import reference_functions
+from symkf.models import geo_satellite as geo
+from symkf.models import get_model
 from .backends import SymkfError
 from .reference import wrap_angle
 

@@ -20,6 +20,7 @@ Quaternions are scalar-last ``[x, y, z, w]`` everywhere in the project; BROAD's 
 from __future__ import annotations
 
 import csv
+import os
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
@@ -27,9 +28,9 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 
-from ..codegen.families.marg import FORMS, MODES, ZERO_NORM, marg_functions
-from ..models import quaternion as quat
-from ..models.marg import ALPHA_DEFAULT, BETA_MADGWICK
+from symkf.codegen.families.marg import FORMS, MODES, ZERO_NORM, marg_functions
+from symkf.models import quaternion as quat
+from symkf.models.marg import ALPHA_DEFAULT, BETA_MADGWICK
 from .backends import SymkfError
 from .filters import as_array, read_only
 
@@ -38,9 +39,12 @@ NWU_TO_ENU = np.array([0.0, 0.0, np.sqrt(0.5), np.sqrt(0.5)])
 
 
 def data_dir() -> Path:
-    """``../shared/data`` relative to the project root (absent in a bare checkout)."""
-    import symkf
-    return Path(symkf.PROJECT_ROOT).parent / "shared" / "data"
+    """``$SYMKF_DATA_DIR``, else ``../shared/data`` beside a source checkout, else ``./data``."""
+    env = os.environ.get("SYMKF_DATA_DIR")
+    if env:
+        return Path(env)
+    beside_checkout = Path(__file__).resolve().parents[2] / "shared" / "data"
+    return beside_checkout if beside_checkout.is_dir() else Path("data")
 
 
 # ---------------------------------------------------------------------- recordings

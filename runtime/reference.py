@@ -11,9 +11,9 @@ from __future__ import annotations
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve, solve_triangular
 
-from ..codegen import make_config
-from ..codegen.filters import ModelFunctions
-from ..models import get_model
+from symkf.codegen import make_config
+from symkf.codegen.filters import ModelFunctions
+from symkf.models import get_model
 
 
 def wrap_angle(a):

@@ -16,9 +16,9 @@ import time
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ..codegen.families import attitude as family
-from ..runtime import load
-from ..runtime.attitude import AttitudeFilter, ReferenceAttitudeFilter
+from symkf.codegen.families import attitude as family
+from symkf.runtime import load
+from symkf.runtime.attitude import AttitudeFilter, ReferenceAttitudeFilter
 
 KINDS = ("mekf", "ukf", "aukf")
 SIGMA_POINTS = {

@@ -30,7 +30,6 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import PROJECT_ROOT
 
 MODEL = "geo_satellite"
 EDIT = ('"Ixy": 53.0,', '"Ixy": 54.0,')      # one line of Table 2 in models/geo_satellite.py
@@ -47,9 +46,9 @@ def add_arguments(parser) -> None:
 def _source_copy(root: Path) -> Path:
     """The package laid out as ``symkf/`` under ``root`` (importable with PYTHONPATH=root)."""
     package = root / "symkf"
-    shutil.copytree(PROJECT_ROOT / "symkf_pkg", package, ignore=shutil.ignore_patterns("__pycache__"))
+    checkout = Path(__file__).resolve().parents[1]
     for folder in ("models", "codegen", "runtime", "scenarios"):
-        shutil.copytree(PROJECT_ROOT / folder, package / folder, ignore=shutil.ignore_patterns("__pycache__"))
+        shutil.copytree(checkout / folder, package / folder, ignore=shutil.ignore_patterns("__pycache__"))
     return package
 
 
@@ -88,8 +87,8 @@ def build_loop(repeats: int) -> dict:
 
 def compile_levels(levels=("-O1", "-O2", "-O3")) -> dict:
     """Compile the generated C at several -O levels (strict flags as in the build)."""
-    from ..codegen.build import build_model
-    from ..codegen.c_writer import STRICT_FLAGS
+    from symkf.codegen.build import build_model
+    from symkf.codegen.c_writer import STRICT_FLAGS
     result = build_model(MODEL)
     times = {}
     with tempfile.TemporaryDirectory() as tmp:
@@ -114,9 +113,9 @@ def _median_us(call, n: int = 2000, blocks: int = 7) -> float:
 
 
 def step_cost() -> dict:
-    from ..models import geo_satellite as geo
-    from ..models import get_model
-    from ..runtime.geo import NumpyCDEKF, _load
+    from symkf.models import geo_satellite as geo
+    from symkf.models import get_model
+    from symkf.runtime.geo import NumpyCDEKF, _load
     compiled = _load()
     tune = geo.filter_tuning()
     x0 = geo.initial_errors(geo.TABLE6)

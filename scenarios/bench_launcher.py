@@ -25,11 +25,11 @@ from pathlib import Path
 
 import numpy as np
 
-from ..codegen import build_model
-from ..codegen.build import compiler
-from ..models import launcher as L
-from ..runtime import load
-from ..runtime.reference import ReferenceFilter
+from symkf.codegen import build_model
+from symkf.codegen.build import compiler
+from symkf.models import launcher as L
+from symkf.runtime import load
+from symkf.runtime.reference import ReferenceFilter
 from .launcher_campaign import TUNING, Campaign, initial_estimate, Case
 from .launcher_truth import propagate, radar_track
 

@@ -14,8 +14,8 @@ import argparse
 import importlib
 import sys
 
-from ..codegen import BuildError, build_model
-from ..models import ModelError
+from symkf.codegen import BuildError, build_model
+from symkf.models import ModelError
 
 
 def _scenario_module(kind: str, name: str):

@@ -38,10 +38,10 @@ import casadi as ca
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ..codegen.families.attitude import AttitudeFunctions
-from ..models import attitude as att
-from ..runtime import load
-from ..runtime.attitude import DEFAULT_KAPPA, AttitudeFilter
+from symkf.codegen.families.attitude import AttitudeFunctions
+from symkf.models import attitude as att
+from symkf.runtime import load
+from symkf.runtime.attitude import DEFAULT_KAPPA, AttitudeFilter
 
 GYRO_PERIOD = 0.25                      # s, section V
 TRUTH_SUBSTEPS = 10                     # truth step 0.025 s

@@ -24,9 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import PROJECT_ROOT
-from ..models import geo_satellite as geo
-from ..runtime.geo import LoopResult, LoopSettings, closed_loop_eigenvalues, geometry_rank, simulate
+from symkf.models import geo_satellite as geo
+from symkf.runtime.geo import LoopResult, LoopSettings, closed_loop_eigenvalues, geometry_rank, simulate
 
 DEFAULT_DURATION = 1000.0
 #: Converged: the attitude error over the last 10 % stays under this (deg) or 5 % of its peak.
@@ -274,7 +273,7 @@ def _reference(case: int, duration: float, names: list[str] | None = None) -> di
 def add_arguments(parser) -> None:
     parser.add_argument("--case", default="all", choices=["1", "2", "3", "4", "all"])
     parser.add_argument("--duration", type=float, default=DEFAULT_DURATION, help="simulated seconds per run")
-    parser.add_argument("--out", default=str(PROJECT_ROOT / "results" / "geo"))
+    parser.add_argument("--out", default="results/geo")
 
 
 def run(args) -> int:

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..models import launcher as L
+from symkf.models import launcher as L
 from . import launcher_campaign as C
 from .launcher_campaign import FILTERS, STATE_NAMES, TUNING, Campaign, CaseResult, consistency
 

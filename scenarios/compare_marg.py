@@ -29,9 +29,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..models.marg import ALPHA_DEFAULT
-from ..runtime import load
-from ..runtime.marg import (MargFilter, Recording, broad_errors, data_dir, error_rotation_vectors, euler_angles,
+from symkf.models.marg import ALPHA_DEFAULT
+from symkf.runtime import load
+from symkf.runtime.marg import (MargFilter, Recording, broad_errors, data_dir, error_rotation_vectors, euler_angles,
                             from_enu, load_recording, to_enu)
 
 DEFAULT_DATA = data_dir() / "broad" / "01_undisturbed_slow_rotation_A.mat"
@@ -40,10 +40,9 @@ ANGLE_NAMES = ("psi (yaw)", "theta (pitch)", "phi (roll)")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    import symkf
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA, help="a BROAD .mat or an x-io .csv recording")
     parser.add_argument("--beta", type=_float_list, default=[0.01, 0.5], help="comma-separated gains (rad/s)")
-    parser.add_argument("--out", type=Path, default=Path(symkf.PROJECT_ROOT) / "results" / "marg")
+    parser.add_argument("--out", type=Path, default=Path("results") / "marg")
     parser.add_argument("--sweep", action="store_true", help="also sweep beta on a log grid and mark the best")
     parser.add_argument("--form", choices=("simple", "full"), default="simple",
                         help="simplified form (31) (the paper's Fig 3) or full form (26)-(30)")

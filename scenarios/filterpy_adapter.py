@@ -10,8 +10,8 @@ from __future__ import annotations
 import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter, JulierSigmaPoints, UnscentedKalmanFilter
 
-from ..models import launcher as L
-from ..runtime.reference import wrap_angle
+from symkf.models import launcher as L
+from symkf.runtime.reference import wrap_angle
 
 
 class _ModelCalls:

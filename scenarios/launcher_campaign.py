@@ -24,8 +24,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..models import launcher as L
-from ..runtime import load
+from symkf.models import launcher as L
+from symkf.runtime import load
 from .launcher_truth import propagate, radar_track
 from .metrics import ErrorAccumulator, nees, nees_band, whole_flight_mean
 

@@ -17,7 +17,7 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 
-from ..models import launcher as L
+from symkf.models import launcher as L
 from .launcher_truth import PHASES, _phase_integrator
 
 UNKNOWNS = ("initial_flight_path_angle",) + L.GUIDANCE_PARAMS

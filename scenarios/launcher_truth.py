@@ -15,10 +15,10 @@ from functools import lru_cache
 import casadi as ca
 import numpy as np
 
-from ..codegen.discretize import continuous_dynamics, measurement_function
-from ..models import get_model
-from ..models import launcher as L
-from ..runtime.reference import wrap_angle
+from symkf.codegen.discretize import continuous_dynamics, measurement_function
+from symkf.models import get_model
+from symkf.models import launcher as L
+from symkf.runtime.reference import wrap_angle
 
 #: Phase boundaries of Table 2 (s).
 PHASES = (0.0, L.T_STAGE1_BURNOUT, L.T_FAIRING, L.T_STAGE2_IGNITION, L.T_INSERTION)

@@ -57,8 +57,8 @@ from __future__ import annotations
 
 import casadi as ca
 
-from ...models import attitude as att
-from ...models import quaternion as quat
+from symkf.models import attitude as att
+from symkf.models import quaternion as quat
 from .. import linalg
 from ..discretize import FUNCTION_OPTIONS
 from ..filters import Symbols, compose_step, make_kernel, register_family

@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import casadi as ca
 
-from ...models.base import Model
+from symkf.models.base import Model
 from .. import linalg
 from ..discretize import FUNCTION_OPTIONS, continuous_dynamics
 from ..filters import ModelFunctions, Symbols, _innovation, _masked_noise, compose_step, register_family
