@@ -26,7 +26,7 @@ import casadi as ca
 
 from symkf.models import get_model, model_module
 from . import c_writer, families  # noqa: F401  (families register themselves on import)
-from .filters import FAMILIES, ModelFunctions, Symbols, model_kernels
+from .kernels import FAMILIES, ModelFunctions, Symbols, model_kernels
 from .spec import Bundle, CodegenConfig
 
 CODEGEN_DIR = Path(__file__).resolve().parent

@@ -29,7 +29,7 @@ Choices the paper leaves open (documented, each a named constant below):
   divide by cos(gamma), so a near-vertical start makes psi unobservable and lets estimates cross
   90 deg), then angle of attack alpha(t) = a0 + a1 (t/t1)^2 + a2 (t/t1) in stage 1,
   zero in the coast, and alpha(t) = b0 + b1 (t - t_ign) in stage 2 (linear steering). The
-  numbers are solved with IPOPT by ``symkf.scenarios.launcher_guidance`` to meet Table 2;
+  numbers are solved with IPOPT by ``symkf.scenarios.launcher.guidance`` to meet Table 2;
   its output is pasted into GUIDANCE below.
 """
 from __future__ import annotations
@@ -126,7 +126,7 @@ TABLE3 = {
 #: Section 4: processing time per step, MATLAB 6.5 on an Athlon XP 2500+ (ms).
 PAPER_MS_PER_STEP = {"ekf": 2.32, "ukf": 9.22}
 
-#: Guidance and stage-2 flow solved by ``symkf.scenarios.launcher_guidance`` (IPOPT) to meet
+#: Guidance and stage-2 flow solved by ``symkf.scenarios.launcher.guidance`` (IPOPT) to meet
 #: Table 2 and the insertion conditions. Regenerate with ``symkf design-guidance``.
 GUIDANCE = {
     "initial_flight_path_angle": 1.5009831716994506,   # rad (86.0 deg, the design bound)

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from symkf.codegen.families import attitude as family
+from symkf.codegen.families import quaternion_filters as family
 from symkf.codegen.spec import STATUS_DOMAIN, STATUS_NONFINITE, STATUS_NOT_PD
 from symkf.models import attitude as model
 from .backends import SymkfError

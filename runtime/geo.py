@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from symkf.codegen.families.geo import reference_functions
+from symkf.codegen.families.cd_ekf import reference_functions
 from symkf.models import geo_satellite as geo
 from symkf.models import get_model
 from .backends import SymkfError
@@ -80,7 +80,7 @@ def least_squares_rates(gyro_output: np.ndarray, failed) -> np.ndarray:
 class NumpyCDEKF:
     """Plain-NumPy continuous-discrete EKF with the compiled filter's interface (the oracle).
 
-    Same equations as ``symkf.codegen.families.geo`` (Table 1): RK4 of x and the full P, then
+    Same equations as ``symkf.codegen.families.cd_ekf`` (Table 1): RK4 of x and the full P, then
     masked updates with P = (I - K H) P symmetrised; the model functions come from the same
     symbolic source via :func:`reference_functions`.
     """

@@ -28,7 +28,7 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 
-from symkf.codegen.families.marg import FORMS, MODES, ZERO_NORM, marg_functions
+from symkf.codegen.families.gradient_descent import FORMS, MODES, ZERO_NORM, marg_functions
 from symkf.models import quaternion as quat
 from symkf.models.marg import ALPHA_DEFAULT, BETA_MADGWICK
 from .backends import SymkfError

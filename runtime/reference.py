@@ -1,7 +1,7 @@
 """NumPy reference EKF and UKF: the readable oracle (and the "plain Python" timing column).
 
 The model is evaluated through CasADi (the same f_d, F, h, H Functions the C code calls); the
-filter algebra is written out in NumPy exactly as ``codegen/filters.py`` generates it:
+filter algebra is written out in NumPy exactly as ``codegen/families/kalman.py`` generates it:
 EKF with the Joseph-form update, UKF with Julier sigma points (paper 004 eqs (1)-(3)) redrawn for
 the update, masks and angle wrapping identical. Compiled and reference filters must agree to
 round-off on the same inputs (tests/test_reference_agreement.py).
@@ -12,7 +12,7 @@ import numpy as np
 from scipy.linalg import cho_factor, cho_solve, solve_triangular
 
 from symkf.codegen import make_config
-from symkf.codegen.filters import ModelFunctions
+from symkf.codegen.kernels import ModelFunctions
 from symkf.models import get_model
 
 
@@ -62,12 +62,12 @@ class ReferenceFilter:
     def update(self, z, name: str, t: float, q, mask=None) -> None:
         z = np.asarray(z, float)
         mask = np.ones_like(z) if mask is None else np.asarray(mask, float)
-        R = self._masked_noise(self.R[name], mask)
+        R = self.masked_noise(self.R[name], mask)
         wrap = self.wrap[name]
         if self.family == "ekf":
             z_pred = self._h(name, t, self.x, q)
             H = mask[:, None] * np.array(self.functions.jac_h[name](t, self.x, self.u, self.p, q))
-            y = self._innovation(z, z_pred, mask, wrap)
+            y = self.innovation(z, z_pred, mask, wrap)
             S = _sym(H @ self.P @ H.T + R)
             K = cho_solve(cho_factor(S, lower=True), H @ self.P).T
             I_KH = np.eye(len(self.x)) - K @ H
@@ -84,7 +84,7 @@ class ReferenceFilter:
             Pxz = sum(w * np.outer(a, b) for w, a, b in zip(weights, dx, dz))
             L = np.linalg.cholesky(S)
             U = solve_triangular(L, Pxz.T, lower=True)     # K y = U^T L^-1 y, K S K^T = U^T U
-            y = self._innovation(z, z_pred, mask, wrap)
+            y = self.innovation(z, z_pred, mask, wrap)
             self.x = self.x + U.T @ solve_triangular(L, y, lower=True)
             self.P = _sym(self.P - U.T @ U)
         self.y, self.S = y, S
@@ -102,11 +102,11 @@ class ReferenceFilter:
         return points, weights
 
     @staticmethod
-    def _masked_noise(R, mask):
+    def masked_noise(R, mask):
         return R * np.outer(mask, mask) + np.diag(1 - mask)
 
     @staticmethod
-    def _innovation(z, z_pred, mask, wrap):
+    def innovation(z, z_pred, mask, wrap):
         d = np.where(wrap, wrap_angle(z - z_pred), z - z_pred)
         return np.where(mask > 0.5, d, 0.0)
 

@@ -1,12 +1,13 @@
 """The ``symkf`` command line.
 
     symkf build <model> [--force]       generate + compile build/<model>/ (content-hash cached)
-    symkf compare <name> [options]      a paper's experiment (scenarios/compare_<name>.py)
-    symkf bench <name> [--json]         timing table (scenarios/bench_<name>.py)
+    symkf compare <name> [options]      a paper's experiment (scenarios/<name>/compare.py)
+    symkf bench <name> [--json]         timing table (scenarios/<name>/bench.py)
     symkf design-guidance               re-solve the launcher guidance (IPOPT)
 
-``compare`` and ``bench`` find their scenario by module name, so a new experiment is a new file
-that defines ``add_arguments(parser)`` and ``run(args) -> int``.
+``compare`` and ``bench`` find their scenario by module name, so a new experiment is a new folder
+``scenarios/<name>/`` whose ``compare.py`` / ``bench.py`` define ``add_arguments(parser)`` and
+``run(args) -> int``.
 """
 from __future__ import annotations
 
@@ -19,10 +20,12 @@ from symkf.models import ModelError
 
 
 def _scenario_module(kind: str, name: str):
+    if not name.isidentifier():
+        return None
     try:
-        return importlib.import_module(f"symkf.scenarios.{kind}_{name}")
+        return importlib.import_module(f"symkf.scenarios.{name}.{kind}")
     except ModuleNotFoundError as exc:
-        if exc.name == f"symkf.scenarios.{kind}_{name}":
+        if exc.name in (f"symkf.scenarios.{name}", f"symkf.scenarios.{name}.{kind}"):
             return None
         raise
 
@@ -43,7 +46,7 @@ def _dispatch(kind: str, argv: list[str]) -> int:
     name, rest = argv[0], argv[1:]
     module = _scenario_module(kind, name)
     if module is None:
-        print(f"symkf {kind}: no scenario '{name}' (expected scenarios/{kind}_{name}.py)", file=sys.stderr)
+        print(f"symkf {kind}: no scenario '{name}' (expected scenarios/{name}/{kind}.py)", file=sys.stderr)
         return 2
     parser = argparse.ArgumentParser(prog=f"symkf {kind} {name}", description=module.__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -69,7 +72,7 @@ def main(argv: list[str] | None = None) -> int:
     sub.add_parser("compare", help="run a paper's experiment: symkf compare <name> --help")
     sub.add_parser("bench", help="timing table: symkf bench <name> --help")
     guidance = sub.add_parser("design-guidance", help="re-solve the launcher guidance with IPOPT")
-    guidance.set_defaults(handler=lambda a: importlib.import_module("symkf.scenarios.launcher_guidance").main())
+    guidance.set_defaults(handler=lambda a: importlib.import_module("symkf.scenarios.launcher.guidance").main())
     args = parser.parse_args(argv)
     try:
         return int(args.handler(args) or 0)

@@ -5,7 +5,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from symkf.codegen.discretize import discrete_dynamics
-from symkf.codegen.families import attitude as family
+from symkf.codegen.families import quaternion_filters as family
 from symkf.codegen.spec import STATUS_DOMAIN, STATUS_NONFINITE
 from symkf.models import attitude as att
 from symkf.models import get_model

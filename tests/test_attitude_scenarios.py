@@ -5,9 +5,9 @@ import json
 import numpy as np
 import pytest
 
-from symkf.codegen.families import attitude as family
+from symkf.codegen.families import quaternion_filters as family
 from symkf.models import attitude as att
-from symkf.scenarios import bench_attitude, compare_attitude
+from symkf.scenarios.attitude import bench as bench_attitude, compare as compare_attitude
 
 
 def parse(module, argv):

@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from symkf.scenarios import launcher_campaign as C
+from symkf.scenarios.launcher import campaign as C
 from symkf.scenarios.cli import main
 
 

@@ -10,7 +10,7 @@ import pytest
 
 from symkf.codegen import build_model
 from symkf.models import launcher as L
-from symkf.scenarios.launcher_truth import propagate, radar_track
+from symkf.scenarios.launcher.truth import propagate, radar_track
 
 HARNESS = r"""
 #include <stdio.h>

@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from symkf.scenarios import compare_geo
+from symkf.scenarios.geo import compare as compare_geo
 
 #: Simulated seconds per case: long enough for the ~100 s PID time constants to settle.
 SHORT = {1: 400.0, 2: 600.0, 3: 400.0, 4: 400.0}

@@ -3,11 +3,11 @@ import numpy as np
 import pytest
 
 from symkf.codegen import make_config
-from symkf.codegen.filters import ModelFunctions
+from symkf.codegen.kernels import ModelFunctions
 from symkf.models import get_model
 from symkf.models import launcher as L
 from symkf.runtime.reference import ReferenceFilter
-from symkf.scenarios.launcher_truth import propagate, radar_track
+from symkf.scenarios.launcher.truth import propagate, radar_track
 
 P0 = np.diag([10.0, 1e-4, 1e-4, 1000.0, 1e-5, 1e-5]) ** 2
 Q = np.diag([1.0, 1e-8, 1e-8, 1.0, 1e-14, 1e-14])

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from symkf.models import launcher as L
-from symkf.scenarios.launcher_truth import events_table, propagate, radar_track
+from symkf.scenarios.launcher.truth import events_table, propagate, radar_track
 
 
 def test_insertion_conditions():

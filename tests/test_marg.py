@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from symkf.codegen.families.marg import marg_functions
+from symkf.codegen.families.gradient_descent import marg_functions
 from symkf.models import marg as paper
 from symkf.models import quaternion as quat
 from symkf.runtime import SymkfError, load

@@ -9,7 +9,7 @@ import pytest
 
 from symkf.runtime.marg import data_dir
 from symkf.scenarios import cli
-from symkf.scenarios.compare_marg import oscillation
+from symkf.scenarios.marg.compare import oscillation
 
 BROAD_TRIAL = data_dir() / "broad" / "01_undisturbed_slow_rotation_A.mat"
 XIO_CSV = data_dir() / "fusion_sensor_data.csv"

@@ -1,7 +1,9 @@
-"""Filter families beyond the generic EKF/UKF: one module each, registered on import.
+"""Filter families, one module per algorithm, each registered on import.
 
-A module here defines ``def kernels(model, symbols, functions) -> list[Kernel]`` and calls
-``symkf.codegen.filters.register_family("<name>", kernels)``. Every module in this folder is
+``kalman`` (EKF, UKF), ``cd_ekf`` (continuous-discrete EKF), ``quaternion_filters`` (multiplicative
+EKF and quaternion-mean UKF), ``gradient_descent`` (MARG filter). A module here defines
+``def kernels(model, symbols, functions) -> list[Kernel]`` and calls
+``symkf.codegen.kernels.register_family("<name>", kernels)``. Every module in this folder is
 imported below, so adding a family is adding a file.
 """
 import importlib

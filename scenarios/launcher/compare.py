@@ -16,8 +16,8 @@ from pathlib import Path
 import numpy as np
 
 from symkf.models import launcher as L
-from . import launcher_campaign as C
-from .launcher_campaign import FILTERS, STATE_NAMES, TUNING, Campaign, CaseResult, consistency
+from . import campaign as C
+from .campaign import FILTERS, STATE_NAMES, TUNING, Campaign, CaseResult, consistency
 
 UNITS = dict(zip(STATE_NAMES, L.TABLE3_UNITS))
 EVENT_LINES = ((L.T_STAGE1_BURNOUT, "staging"), (L.T_STAGE2_IGNITION, "2nd ignition"),

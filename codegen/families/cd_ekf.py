@@ -15,7 +15,7 @@ Measurement update (discrete, at each sensor's own rate): with U = H P (H sparse
     xhat+ = xhat + K (z - h(xhat)).
 
 P+ = P - K U costs O(n^2 m) instead of the O(n^3) of (I - K H) P, and is symmetrised. Masks as
-in :mod:`symkf.codegen.filters`: a masked component contributes exactly nothing, all masked
+in :mod:`symkf.codegen.kernels`: a masked component contributes exactly nothing, all masked
 leaves x and P bit-for-bit unchanged (K = 0). A non-PD S returns NOT_PD (and writes nothing).
 
 C size and compile time: the augmented derivative (x', P') is one never-inlined SX function
@@ -34,7 +34,7 @@ import casadi as ca
 from symkf.models.base import Model
 from .. import linalg
 from ..discretize import FUNCTION_OPTIONS, continuous_dynamics
-from ..filters import ModelFunctions, Symbols, _innovation, _masked_noise, compose_step, register_family
+from ..kernels import ModelFunctions, Symbols, innovation, masked_noise, compose_step, register_family
 from ..spec import STATUS_NOT_PD, Kernel
 
 FAMILY = "cd_ekf"
@@ -133,9 +133,9 @@ def measurement_terms(model: Model, name: str) -> ca.Function:
     t, x, u, p = ca.SX.sym("t"), ca.SX.sym("x", n), ca.SX.sym("u", model.u.shape[0]), ca.SX.sym("p", model.p.shape[0])
     q, z, mask, R = ca.SX.sym("q", meas.q.shape[0]), ca.SX.sym("z", m), ca.SX.sym("mask", m), ca.SX.sym("R", m, m)
     z_pred, H = measurement_jacobian(model, name)(t, x, u, p, q)
-    y = _innovation(z, z_pred, mask, meas.wrap)
+    y = innovation(z, z_pred, mask, meas.wrap)
     return ca.Function(f"{model.name}_cd_terms_{name}", [t, x, u, p, q, z, mask, R],
-                       [ca.diag(mask) @ H, _masked_noise(R, mask), y],
+                       [ca.diag(mask) @ H, masked_noise(R, mask), y],
                        ["t", "x", "u", "p", "q", "z", "mask", "R"], ["H", "R", "y"], _CALLED)
 
 

@@ -18,7 +18,7 @@ import casadi as ca
 import numpy as np
 
 from symkf.models import launcher as L
-from .launcher_truth import PHASES, _phase_integrator
+from .truth import PHASES, _phase_integrator
 
 UNKNOWNS = ("initial_flight_path_angle",) + L.GUIDANCE_PARAMS
 #: The NLP works in degrees, degrees per 100 s and kg/s so that every unknown is of order 1-100.

@@ -26,8 +26,8 @@ import numpy as np
 
 from symkf.models import launcher as L
 from symkf.runtime import load
-from .launcher_truth import propagate, radar_track
-from .metrics import ErrorAccumulator, nees, nees_band, whole_flight_mean
+from .truth import propagate, radar_track
+from symkf.scenarios.metrics import ErrorAccumulator, nees, nees_band, whole_flight_mean
 
 STATE_NAMES = ("V", "gamma", "psi", "r", "theta", "phi")
 ANGLE_STATES = np.array([False, True, True, False, True, True])

@@ -25,7 +25,7 @@ from symkf.codegen import build_model
 from symkf.models.marg import ALPHA_DEFAULT, BETA_MADGWICK
 from symkf.runtime import load
 from symkf.runtime.marg import MargFilter, broad_errors, data_dir, load_recording, reference_run
-from .compare_marg import SWEEP_BETAS
+from .compare import SWEEP_BETAS
 
 FORMS = ("simple", "full")
 

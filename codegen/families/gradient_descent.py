@@ -26,7 +26,7 @@ from functools import lru_cache
 import casadi as ca
 
 from symkf.models import marg as paper
-from ..filters import ModelFunctions, Symbols, make_kernel, register_family
+from ..kernels import ModelFunctions, Symbols, make_kernel, register_family
 from ..linalg import select
 from ..spec import STATUS_DOMAIN, Arg, Kernel
 

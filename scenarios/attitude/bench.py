@@ -16,7 +16,7 @@ import time
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from symkf.codegen.families import attitude as family
+from symkf.codegen.families import quaternion_filters as family
 from symkf.runtime import load
 from symkf.runtime.attitude import AttitudeFilter, ReferenceAttitudeFilter
 

@@ -38,7 +38,7 @@ import casadi as ca
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from symkf.codegen.families.attitude import AttitudeFunctions
+from symkf.codegen.families.quaternion_filters import AttitudeFunctions
 from symkf.models import attitude as att
 from symkf.runtime import load
 from symkf.runtime.attitude import DEFAULT_KAPPA, AttitudeFilter

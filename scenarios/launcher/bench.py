@@ -30,8 +30,8 @@ from symkf.codegen.build import compiler
 from symkf.models import launcher as L
 from symkf.runtime import load
 from symkf.runtime.reference import ReferenceFilter
-from .launcher_campaign import TUNING, Campaign, initial_estimate, Case
-from .launcher_truth import propagate, radar_track
+from .campaign import TUNING, Campaign, initial_estimate, Case
+from .truth import propagate, radar_track
 
 FILTERS = ("ekf", "ukf")
 RATE_HZ = 20

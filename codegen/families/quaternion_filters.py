@@ -61,7 +61,7 @@ from symkf.models import attitude as att
 from symkf.models import quaternion as quat
 from .. import linalg
 from ..discretize import FUNCTION_OPTIONS
-from ..filters import Symbols, compose_step, make_kernel, register_family
+from ..kernels import Symbols, compose_step, make_kernel, register_family
 from ..spec import STATUS_DOMAIN, STATUS_NONFINITE, STATUS_NOT_PD, Arg, Kernel
 
 #: Squarings of the shifted M in the quaternion mean: off-dominant directions shrink as r^(2^k).

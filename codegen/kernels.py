@@ -1,18 +1,18 @@
-"""Fused EKF and UKF steps as CasADi Functions (kernels), derived from a Model.
+"""The kernel framework every filter family builds on (families live in ``codegen/families/``).
 
-EKF (additive noise): x- = f_d(x), P- = F P F^T + Q dt; update with the Joseph form
-P+ = (I - K H) P- (I - K H)^T + K R K^T. Q is a continuous-time power spectral density, so the
-discrete process noise is Q dt.
-
-UKF (paper 004, eqs (1)-(3), Julier & Uhlmann): 2n+1 sigma points x, x +/- columns of
-chol((n + kappa) P), weights W_0 = kappa/(n + kappa), W_i = 1/(2(n + kappa)); the update redraws
-sigma points from the predicted mean and covariance. Angle components of a measurement are
-averaged and differenced on the circle (wrapped to (-pi, pi]).
+- :class:`Symbols`: the canonical kernel arguments of a model (t, dt, x, P, u, p, Q, per
+  measurement q, z, mask, R, ...), one SX symbol and one :class:`~symkf.codegen.spec.Arg` each.
+- :class:`ModelFunctions`: the model's f_d, F = df_d/dx, h and H = dh/dx as CasADi Functions,
+  generated once and called by every family's kernels.
+- :func:`make_kernel` (the one way to declare a kernel) and :func:`compose_step` (predict then
+  update as one kernel); :func:`model_kernels` for the stand-alone model functions.
+- Shared update algebra: masked noise, wrapped masked innovation, keep-on-failure outputs.
+- :data:`FAMILIES` / :func:`register_family`: a model asks for families by name.
 
 Every update takes an availability ``mask`` (1 = use, 0 = ignore): a masked component's
 innovation is zero, its row of H and its sigma-point deviations are zero and its noise variance
 is replaced by 1, so it contributes exactly nothing; an all-masked update returns x and P unchanged.
-A failed Cholesky factorisation returns status SYMKF_ERR_NOT_PD and the inputs x, P unchanged.
+A failed factorisation returns a status code and the inputs x, P unchanged.
 """
 from __future__ import annotations
 
@@ -23,7 +23,7 @@ import casadi as ca
 from symkf.models.base import Model
 from . import linalg
 from .discretize import FUNCTION_OPTIONS, continuous_dynamics, discrete_dynamics, measurement_function
-from .spec import STATUS_DOMAIN, STATUS_NOT_PD, Arg, CodegenConfig, Kernel
+from .spec import STATUS_NOT_PD, Arg, CodegenConfig, Kernel
 
 
 class Symbols:
@@ -156,7 +156,7 @@ def _generic_names(model: Model) -> set[str]:
 
 
 # ---------------------------------------------------------------------- shared update algebra
-def _masked_noise(R: ca.SX, mask: ca.SX) -> ca.SX:
+def masked_noise(R: ca.SX, mask: ca.SX) -> ca.SX:
     """R with masked rows/columns replaced by the identity's (keeps S positive definite)."""
     m = R.shape[0]
     return ca.vertcat(*[ca.horzcat(*[
@@ -164,7 +164,7 @@ def _masked_noise(R: ca.SX, mask: ca.SX) -> ca.SX:
         for i in range(m)])
 
 
-def _innovation(z: ca.SX, z_pred: ca.SX, mask: ca.SX, wrap: tuple[bool, ...]) -> ca.SX:
+def innovation(z: ca.SX, z_pred: ca.SX, mask: ca.SX, wrap: tuple[bool, ...]) -> ca.SX:
     """z - z_pred, angles wrapped; masked components are exactly 0 even if z is NaN there."""
     rows = []
     for i, is_angle in enumerate(wrap):
@@ -173,50 +173,9 @@ def _innovation(z: ca.SX, z_pred: ca.SX, mask: ca.SX, wrap: tuple[bool, ...]) ->
     return ca.vertcat(*rows)
 
 
-def _keep_on_failure(ok: ca.SX, new: list[ca.SX], old: list[ca.SX], failure_code: int) -> list[ca.SX]:
+def keep_on_failure(ok: ca.SX, new: list[ca.SX], old: list[ca.SX], failure_code: int) -> list[ca.SX]:
     kept = [linalg.select(ok, a, b) for a, b in zip(new, old)]
     return kept + [linalg.select(ok, 0, failure_code)]
-
-
-# ---------------------------------------------------------------------- EKF
-def ekf_predict_expr(symbols: Symbols, fns: ModelFunctions, x, P, t, dt):
-    s = symbols.sym
-    x_next, F = fns.fd_and_jac(t, dt, x, s["u"], s["p"])
-    return x_next, linalg.symmetrize(F @ P @ F.T + s["Q"] * dt)
-
-
-def ekf_update_expr(symbols: Symbols, fns: ModelFunctions, name: str, msym: dict, wrap, x, P, t):
-    s = symbols.sym
-    n = symbols.model.nx
-    z_pred = fns.h[name](t, x, s["u"], s["p"], msym["q"])
-    mask = msym["mask"]
-    H = ca.diag(mask) @ fns.jac_h[name](t, x, s["u"], s["p"], msym["q"])
-    R = _masked_noise(msym["R"], mask)
-    y = _innovation(msym["z"], z_pred, mask, wrap)
-    S = linalg.symmetrize(H @ P @ H.T + R)
-    L, ok = linalg.cholesky(S)
-    K = linalg.cholesky_solve(L, H @ P).T           # K = P H^T S^-1
-    I_KH = ca.SX.eye(n) - K @ H
-    x_new = x + K @ y
-    P_new = linalg.symmetrize(I_KH @ P @ I_KH.T + K @ R @ K.T)
-    return x_new, P_new, y, S, ok
-
-
-def ekf_kernels(model: Model, symbols: Symbols, fns: ModelFunctions) -> list[Kernel]:
-    s = symbols.sym
-    x_pred, P_pred = ekf_predict_expr(symbols, fns, s["x"], s["P"], s["t"], s["dt"])
-    kernels = [make_kernel("ekf_predict", "EKF prediction from t to t + dt (P = F P F^T + Q dt).",
-                       symbols, {}, {}, ["t", "dt", "x", "P", "u", "p", "Q"],
-                       [("x", x_pred), ("P", P_pred), ("status", ca.SX(0))])]
-    for name, meas in model.measurements.items():
-        msym, marg = symbols.measurement(name)
-        upd = ekf_update_expr(symbols, fns, name, msym, meas.wrap, s["x"], s["P"], s["t"])
-        kernels.append(make_kernel(
-            f"ekf_update_{name}", f"EKF update with measurement '{name}' at time t (Joseph form, masked).",
-            symbols, msym, marg, ["t", "x", "P", "u", "p", "q", "z", "mask", "R"],
-            _update_outputs(upd, s["x"], s["P"])))
-        kernels.append(compose_step(f"ekf_step_{name}", kernels[0], kernels[-1]))
-    return kernels
 
 
 #: Argument order of every generated filter function (a kernel uses the subset it needs).
@@ -254,95 +213,18 @@ def compose_step(name: str, predict: Kernel, update: Kernel) -> Kernel:
                   per_step=tuple(a.name for a in inputs if a.name in ("t", "dt", "u", "q", "z", "mask")))
 
 
-def _update_outputs(update, x_old, P_old):
+def update_outputs(update, x_old, P_old):
     x_new, P_new, y, S, ok = update
-    x_out, P_out, status = _keep_on_failure(ok, [x_new, P_new], [x_old, P_old], STATUS_NOT_PD)
+    x_out, P_out, status = keep_on_failure(ok, [x_new, P_new], [x_old, P_old], STATUS_NOT_PD)
     return [("x", x_out), ("P", P_out), ("y", y), ("S", S), ("status", status)]
-
-
-# ---------------------------------------------------------------------- UKF
-def sigma_points(x: ca.SX, P: ca.SX, kappa: ca.SX):
-    """Eq (1)-(2) of paper 004: points (columns), weights, and a 0/1 success flag."""
-    n = x.shape[0]
-    scale = n + kappa
-    L, ok = linalg.cholesky(scale * P)
-    points = [x] + [x + L[:, i] for i in range(n)] + [x - L[:, i] for i in range(n)]
-    weights = [kappa / scale] + [0.5 / scale] * (2 * n)
-    return points, weights, ok * (scale > 0)
-
-
-def _weighted_mean(points: list[ca.SX], weights: list, wrap: tuple[bool, ...] | None = None) -> ca.SX:
-    """Weighted mean; wrapped components are averaged as deviations from the first point."""
-    if not wrap or not any(wrap):
-        return sum((w * pt for w, pt in zip(weights, points)), ca.SX.zeros(points[0].shape))
-    ref = points[0]
-    deviation = sum((w * _angle_difference(pt, ref, wrap) for w, pt in zip(weights, points)),
-                    ca.SX.zeros(ref.shape))
-    return ref + deviation
-
-
-def _angle_difference(a: ca.SX, b: ca.SX, wrap: tuple[bool, ...]) -> ca.SX:
-    return ca.vertcat(*[linalg.wrap_angle(a[i] - b[i]) if wrap[i] else a[i] - b[i] for i in range(a.shape[0])])
-
-
-def ukf_predict_expr(symbols: Symbols, fns: ModelFunctions, x, P, t, dt):
-    s = symbols.sym
-    points, weights, ok = sigma_points(x, P, s["kappa"])
-    propagated = [fns.fd_inline(t, dt, pt, s["u"], s["p"]) for pt in points]
-    x_pred = _weighted_mean(propagated, weights)
-    P_pred = sum((w * (pt - x_pred) @ (pt - x_pred).T for w, pt in zip(weights, propagated)),
-                 ca.SX.zeros(P.shape)) + s["Q"] * dt
-    return x_pred, linalg.symmetrize(P_pred), ok
-
-
-def ukf_update_expr(symbols: Symbols, fns: ModelFunctions, name: str, msym: dict, wrap, x, P, t):
-    s = symbols.sym
-    mask = msym["mask"]
-    points, weights, ok = sigma_points(x, P, s["kappa"])
-    predicted = [fns.h[name](t, pt, s["u"], s["p"], msym["q"]) for pt in points]
-    z_pred = _weighted_mean(predicted, weights, wrap)
-    dz = [mask * _angle_difference(zi, z_pred, wrap) for zi in predicted]
-    dx = [pt - x for pt in points]
-    R = _masked_noise(msym["R"], mask)
-    S = linalg.symmetrize(sum((w * d @ d.T for w, d in zip(weights, dz)), ca.SX.zeros(R.shape)) + R)
-    Pxz = sum((w * a @ b.T for w, a, b in zip(weights, dx, dz)), ca.SX.zeros(x.shape[0], R.shape[0]))
-    L, ok_s = linalg.cholesky(S)
-    # With U = L^-1 Pxz^T: K y = U^T L^-1 y and K S K^T = U^T U (better conditioned than forming K)
-    U = linalg.solve_lower(L, Pxz.T)
-    y = _innovation(msym["z"], z_pred, mask, wrap)
-    x_new = x + U.T @ linalg.solve_lower(L, y)
-    P_new = linalg.symmetrize(P - U.T @ U)
-    return x_new, P_new, y, S, ok * ok_s
-
-
-def ukf_kernels(model: Model, symbols: Symbols, fns: ModelFunctions) -> list[Kernel]:
-    s = symbols.sym
-    x_pred, P_pred, ok_pred = ukf_predict_expr(symbols, fns, s["x"], s["P"], s["t"], s["dt"])
-    x_out, P_out, status = _keep_on_failure(ok_pred, [x_pred, P_pred], [s["x"], s["P"]], STATUS_NOT_PD)
-    status = linalg.select(s["kappa"] + model.nx > 0, status, STATUS_DOMAIN)
-    kernels = [make_kernel("ukf_predict", "UKF prediction from t to t + dt (2n+1 sigma points, eq (1)-(3)).",
-                       symbols, {}, {}, ["t", "dt", "x", "P", "u", "p", "Q", "kappa"],
-                       [("x", x_out), ("P", P_out), ("status", status)])]
-    for name, meas in model.measurements.items():
-        msym, marg = symbols.measurement(name)
-        upd = ukf_update_expr(symbols, fns, name, msym, meas.wrap, s["x"], s["P"], s["t"])
-        kernels.append(make_kernel(
-            f"ukf_update_{name}", f"UKF update with measurement '{name}' at time t (sigma points redrawn, masked).",
-            symbols, msym, marg, ["t", "x", "P", "u", "p", "q", "z", "mask", "R", "kappa"],
-            _update_outputs(upd, s["x"], s["P"])))
-        kernels.append(compose_step(f"ukf_step_{name}", kernels[0], kernels[-1]))
-    return kernels
 
 
 FamilyBuilder = Callable[[Model, Symbols, ModelFunctions], list[Kernel]]
 
-#: Filter families a model can ask for by name in ``Model.filters``. Other families (quaternion
-#: filters, gradient-descent filters, ...) live in ``codegen/families/<name>.py`` and call
-#: :func:`register_family` when imported; ``symkf.codegen.families`` imports them all.
-FAMILIES: dict[str, FamilyBuilder] = {
-    "ekf": ekf_kernels,
-    "ukf": ukf_kernels,
-}
+#: Filter families a model can ask for by name in ``Model.filters``. Each lives in
+#: ``codegen/families/<algorithm>.py`` and calls :func:`register_family` when imported;
+#: ``symkf.codegen.families`` imports them all.
+FAMILIES: dict[str, FamilyBuilder] = {}
 
 
 def register_family(name: str, builder: FamilyBuilder) -> FamilyBuilder:

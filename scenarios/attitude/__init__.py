@@ -1,0 +1,1 @@
+"""Paper experiment: attitude (truth, Monte Carlo, tables, figures, timing)."""

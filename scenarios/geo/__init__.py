@@ -1,0 +1,1 @@
+"""Paper experiment: geo (truth, Monte Carlo, tables, figures, timing)."""

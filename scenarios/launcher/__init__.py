@@ -1,0 +1,1 @@
+"""Paper experiment: launcher (truth, Monte Carlo, tables, figures, timing)."""

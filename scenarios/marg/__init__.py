@@ -1,0 +1,1 @@
+"""Paper experiment: marg (truth, Monte Carlo, tables, figures, timing)."""
