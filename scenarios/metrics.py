@@ -1,6 +1,9 @@
 """Monte Carlo metrics: RMS error per time (paper 004 eq (8)), its whole-flight mean (eq (11)),
 and the normalised estimation error squared (NEES) with its chi-square consistency band.
 
+Every metric starts from :func:`state_error`, which wraps angle components to (-pi, pi]: an
+estimate 360 deg off in a flight-path angle has *converged*, and its error is 0, not 2 pi.
+
 Accumulators keep running sums so a campaign never holds every run's history in memory.
 """
 from __future__ import annotations
@@ -9,6 +12,18 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.stats import chi2
+
+from symkf.runtime.reference import wrap_angle
+
+
+def state_error(truth: np.ndarray, estimate: np.ndarray, angles) -> np.ndarray:
+    """truth - estimate, with the components flagged in ``angles`` (a boolean per state, last
+    axis) wrapped to (-pi, pi]; the one place metrics turn two states into an error."""
+    error = np.asarray(truth, dtype=float) - np.asarray(estimate, dtype=float)
+    angles = np.asarray(angles, dtype=bool)
+    if angles.shape != error.shape[-1:]:
+        raise ValueError(f"angles: expected {error.shape[-1]} flags (one per state), got shape {angles.shape}")
+    return np.where(angles, wrap_angle(error), error)
 
 
 @dataclass
@@ -26,9 +41,10 @@ class ErrorAccumulator:
         self.squared_error = np.zeros((self.n_steps, self.n_states))
         self.nees = np.zeros(len(range(0, self.n_steps, self.nees_stride)))
 
-    def add(self, truth: np.ndarray, estimate: np.ndarray, covariance: np.ndarray) -> None:
-        """One run: truth and estimate (n_steps, n), covariance (n_steps, n, n)."""
-        error = truth - estimate
+    def add(self, truth: np.ndarray, estimate: np.ndarray, covariance: np.ndarray, angles=None) -> None:
+        """One run: truth and estimate (n_steps, n), covariance (n_steps, n, n); ``angles`` flags
+        the states whose error is wrapped (:func:`state_error`)."""
+        error = state_error(truth, estimate, np.zeros(self.n_states, bool) if angles is None else angles)
         stride = self.nees_stride
         self.add_run(error**2, nees(error[::stride], covariance[::stride]))
 

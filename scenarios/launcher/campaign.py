@@ -27,7 +27,7 @@ import numpy as np
 from symkf.models import launcher as L
 from symkf.runtime import load
 from .truth import propagate, radar_track
-from symkf.scenarios.metrics import ErrorAccumulator, nees, nees_band, whole_flight_mean
+from symkf.scenarios.metrics import ErrorAccumulator, nees, nees_band, state_error, whole_flight_mean
 
 STATE_NAMES = ("V", "gamma", "psi", "r", "theta", "phi")
 ANGLE_STATES = np.array([False, True, True, False, True, True])
@@ -43,7 +43,8 @@ DIVERGED_ANGLE_RAD = 0.01   # still above 0.01 rad in the second half of the fli
 
 
 def outcome(error: np.ndarray) -> str:
-    """'diverged', 'excursion' (a large transient that recovered) or 'ok' for one run's errors."""
+    """'diverged', 'excursion' (a large transient that recovered) or 'ok' for one run's errors
+    (wrapped: see :func:`~symkf.scenarios.metrics.state_error`)."""
     angles = np.abs(error[:, ANGLE_STATES])
     if angles[len(angles) // 2:].max() > DIVERGED_ANGLE_RAD:
         return "diverged"
@@ -154,7 +155,7 @@ class Campaign:
             start = time.perf_counter()
             result = f.run(track.times, z, q=q)
             wall = time.perf_counter() - start
-            error = truth - result.x
+            error = state_error(truth, result.x, ANGLE_STATES)
             outputs[family] = (error**2, nees(error[::NEES_STRIDE], result.P[::NEES_STRIDE]),
                                int(np.count_nonzero(result.status)), wall, outcome(error))
         return outputs
