@@ -1,11 +1,14 @@
 """Model -> CasADi Functions -> C: discretisation, derived Jacobians, fused filter kernels, build.
 
 Three verbs, each callable on its own: :func:`generate` (kernels), :func:`build_model`
-(write + compile, content-hash cached), and ``symkf.runtime.load`` (bind the library).
+(write + compile, cached by a hash of what is generated), and ``symkf.runtime.load`` (bind the
+library). A model is anything :func:`symkf.models.get_model` accepts (a paper model's short name,
+a file path, a module name, a module or a Model).
 """
 from .build import (BuildError, BuildResult, CompilerNotFound, build_model, build_root, compiler,
-                    content_hash, generate, make_config)
+                    content_hash, export_bundle, generate, generated_hash, make_config)
 from .spec import STATUS_CODES, Arg, Bundle, CodegenConfig, Kernel
 
 __all__ = ["Arg", "Bundle", "BuildError", "BuildResult", "CodegenConfig", "CompilerNotFound", "Kernel",
-           "STATUS_CODES", "build_model", "build_root", "compiler", "content_hash", "generate", "make_config"]
+           "STATUS_CODES", "build_model", "build_root", "compiler", "content_hash", "export_bundle", "generate",
+           "generated_hash", "make_config"]

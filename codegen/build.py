@@ -1,36 +1,66 @@
-"""The build lifecycle: generate -> compile -> install, keyed by a content hash.
+"""The build lifecycle: generate -> compile -> install, keyed by a hash of what is generated.
 
-``build_model(name)`` writes ``build/<name>/`` = ``<name>.c``, ``<name>.h``, ``Makefile``,
-``manifest.json`` and ``lib<name>.so``. The content hash covers every source file of
-``models/`` and ``codegen/``, the codegen config, the CasADi version and the compiler command, so
-an edit anywhere in the chain rebuilds; an unchanged build is detected from the manifest alone in
-milliseconds. A build happens in a temporary folder and is moved into place only when complete,
-under a file lock, so neither a crash nor two concurrent builds leave a half-written bundle that
-gets loaded; the loader also checks the library's own embedded hash.
+``build_model(model)`` writes ``<root>/<folder>/`` = ``<name>.c``, ``<name>.h``, ``Makefile``,
+``manifest.json`` and ``lib<name>.so``, where ``<folder>`` is the model's name for its default
+codegen configuration and ``<name>-<cfg8>`` for any other, so switching options back and forth
+does not rebuild.
+
+The content hash covers exactly what determines the library: the model's serialized CasADi
+Functions (f and every h), its description (symbols, units, sigmas, wrap flags, defaults), the
+filter families and generic kernels it asks for, the codegen configuration, the source of the
+codegen modules that generate it, the symkf and CasADi versions, the compiler's identity
+(``cc --version``) and flags. Never file times, never other models' files: editing one model
+rebuilds only that model. The check needs no generation, so an unchanged ``load`` costs well
+under 0.3 s.
+
+Nothing is loaded that this user did not build: the build root is ``$SYMKF_BUILD_DIR``, else the
+source checkout's ``build/`` in a development install, else a per-user cache
+(``$XDG_CACHE_HOME/symkf`` or ``~/.cache/symkf``), never the current directory, and it is refused
+if other users can write to it. The manifest records the SHA-256 of the library; it is checked
+before every load (a damaged or replaced library is rebuilt, never opened). The library Python
+loads is its own copy with a per-build name, sharing no inode with ``lib<name>.so``.
+
+A build happens in a staging folder moved into place when complete, under a per-folder lock
+(opened without following symlinks); staging folders left by a killed build are removed by the
+next one, and the compiler dies with the process that started it.
 """
 from __future__ import annotations
 
+import ctypes
+import errno
 import fcntl
+import functools
 import hashlib
+import importlib.metadata
 import json
 import os
+import secrets
 import shutil
+import signal
 import subprocess
+import sys
 import tempfile
 import time
+import types
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import casadi as ca
 
-from symkf.models import get_model, model_module
+from symkf.models import Model, get_model
 from . import c_writer, families  # noqa: F401  (families register themselves on import)
+from .discretize import continuous_dynamics, measurement_function
 from .kernels import FAMILIES, ModelFunctions, Symbols, model_kernels
 from .spec import Bundle, CodegenConfig
 
 CODEGEN_DIR = Path(__file__).resolve().parent
-MODELS_DIR = Path(model_module.__code__.co_filename).resolve().parent  # models/
+#: Codegen modules every model's code depends on (their source is part of every content hash).
+FRAMEWORK_MODULES = ("symkf.codegen.kernels", "symkf.codegen.discretize", "symkf.codegen.linalg",
+                     "symkf.codegen.spec", "symkf.codegen.c_writer", "symkf.codegen.build",
+                     "symkf.models.base")
+#: Files of a bundle exported by ``symkf build X --out DIR`` (``{name}`` = the model's name).
+BUNDLE_FILES = ("{name}.c", "{name}.h", "Makefile", "manifest.json", "lib{name}.so")
 
 
 class BuildError(RuntimeError):
@@ -54,136 +84,332 @@ class BuildResult:
     seconds: float
 
 
+# ---------------------------------------------------------------------- where builds go
+def development_checkout() -> Path | None:
+    """The source checkout this package runs from (an editable install), else None."""
+    checkout = CODEGEN_DIR.parent
+    if (checkout / "pyproject.toml").is_file() and (checkout / "models" / "base.py").is_file():
+        return checkout
+    return None
+
+
 def build_root() -> Path:
-    """``$SYMKF_BUILD_DIR``, else ``build/`` of the source checkout, else ``./build``."""
+    """``$SYMKF_BUILD_DIR``, else the checkout's ``build/`` (development install), else the per-user
+    cache ``$XDG_CACHE_HOME/symkf`` (default ``~/.cache/symkf``). Never the current directory."""
     env = os.environ.get("SYMKF_BUILD_DIR")
     if env:
-        return Path(env).resolve()
-    checkout = CODEGEN_DIR.parent
-    if (checkout / "pyproject.toml").exists():
+        return Path(env).expanduser().resolve()
+    checkout = development_checkout()
+    if checkout is not None:
         return checkout / "build"
-    return Path.cwd() / "build"
+    cache = os.environ.get("XDG_CACHE_HOME", "")
+    base = Path(cache) if cache and Path(cache).is_absolute() else Path.home() / ".cache"
+    return base / "symkf"
+
+
+def private_root() -> Path:
+    """:func:`build_root`, created if needed, refused if another user owns it or can write to it."""
+    root = build_root()
+    try:
+        root.mkdir(parents=True, exist_ok=True, mode=0o755)
+        info = root.stat()
+    except OSError as exc:
+        raise BuildError(f"build folder {root}: {exc.strerror or exc}; set SYMKF_BUILD_DIR to a folder you own") from None
+    if info.st_uid != os.geteuid() or info.st_mode & 0o022:
+        raise BuildError(f"build folder {root} is writable by other users or not yours (mode {info.st_mode & 0o777:o}); "
+                         f"a library there could be replaced: `chmod go-w {root}` or set SYMKF_BUILD_DIR")
+    return root
+
+
+def folder_name(model: Model, config: CodegenConfig) -> str:
+    """``<name>`` for the model's default configuration, ``<name>-<cfg8>`` for any other."""
+    if config == default_config(model):
+        return model.name
+    text = json.dumps(asdict(config), sort_keys=True, default=str)
+    return f"{model.name}-{hashlib.sha256(text.encode()).hexdigest()[:8]}"
+
+
+# ---------------------------------------------------------------------- configuration and hash
+def default_config(model: Model) -> CodegenConfig:
+    return CodegenConfig().with_overrides(**model.codegen_defaults)
+
+
+def make_config(model, **overrides) -> CodegenConfig:
+    """The model's codegen defaults (``Model.codegen_defaults``) with overrides applied."""
+    model = get_model(model)
+    return CodegenConfig().with_overrides(**{**model.codegen_defaults, **overrides})
 
 
 def compiler() -> str:
     """The C compiler command ($CC or cc); raises CompilerNotFound with a one-line message."""
     cc = os.environ.get("CC", "cc")
-    if shutil.which(cc.split()[0]) is None:
+    if not cc.split() or shutil.which(cc.split()[0]) is None:
         raise CompilerNotFound(f"no C compiler found ('{cc}'): install gcc or clang, or set CC")
     return cc
 
 
-def make_config(name: str, **overrides) -> CodegenConfig:
-    """The model's codegen defaults (``Model.codegen_defaults``) with overrides applied."""
-    model = get_model(name)
-    return CodegenConfig().with_overrides(**{**model.codegen_defaults, **overrides})
+@functools.lru_cache(maxsize=8)
+def compiler_identity(cc: str) -> str:
+    """The compiler's path and first line of ``--version`` (cached per process)."""
+    argv = cc.split()
+    try:
+        proc = subprocess.run(argv + ["--version"], capture_output=True, text=True, timeout=30)
+        version = (proc.stdout or proc.stderr).splitlines()[0] if (proc.stdout or proc.stderr) else ""
+    except (OSError, subprocess.TimeoutExpired) as exc:
+        raise CompilerNotFound(f"C compiler '{cc}' does not run: {exc}") from None
+    return f"{shutil.which(argv[0])} {' '.join(argv[1:])}: {version}".strip()
 
 
-def generate(name: str, config: CodegenConfig | None = None) -> Bundle:
+def _source_digest(module: types.ModuleType) -> str:
+    return _file_digest(module.__name__, getattr(module, "__file__", None) or "")
+
+
+@functools.lru_cache(maxsize=None)
+def _file_digest(name: str, path: str) -> str:
+    """SHA-256 of a module's source, read once per process (the code this process generates with)."""
+    try:
+        return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+    except OSError:
+        return "no-source"
+
+
+def codegen_modules(model: Model) -> list[types.ModuleType]:
+    """The framework modules plus each filter family the model asks for and the symkf modules
+    that family uses (e.g. the quaternion filters read constants from models/attitude.py)."""
+    modules = {name: sys.modules[name] for name in FRAMEWORK_MODULES}
+    for family in model.filters:
+        if family not in FAMILIES:
+            raise BuildError(f"model '{model.name}' asks for filter family '{family}'; known: {sorted(FAMILIES)}")
+        module = sys.modules[FAMILIES[family].__module__]
+        modules[module.__name__] = module
+        for value in vars(module).values():
+            owner = value if isinstance(value, types.ModuleType) else sys.modules.get(getattr(value, "__module__", "") or "")
+            if isinstance(owner, types.ModuleType) and owner.__name__.startswith("symkf."):
+                modules[owner.__name__] = owner
+    return [modules[name] for name in sorted(modules)]
+
+
+def _symkf_version() -> str:
+    try:
+        return importlib.metadata.version("symkf")
+    except importlib.metadata.PackageNotFoundError:
+        return "unknown"
+
+
+def generated_hash(model: Model, config: CodegenConfig) -> str:
+    """Hash of what is generated, independent of the compiler (no generation needed)."""
+    digest = hashlib.sha256()
+    digest.update(continuous_dynamics(model).serialize().encode())
+    for name in model.measurements:
+        digest.update(measurement_function(model, name).serialize().encode())
+    facts = {"description": model.describe(), "filters": list(model.filters),
+             "generic_kernels": list(model.generic_kernels), "config": asdict(config),
+             "codegen": {m.__name__: _source_digest(m) for m in codegen_modules(model)},
+             "symkf": _symkf_version(), "casadi": ca.__version__}
+    digest.update(json.dumps(facts, sort_keys=True, default=str).encode())
+    return digest.hexdigest()
+
+
+def content_hash(model: Model, config: CodegenConfig, cc: str, generated: str | None = None) -> str:
+    """Hash of everything that determines the library: what is generated + compiler + flags."""
+    generated = generated or generated_hash(model, config)
+    text = json.dumps({"generated": generated, "cc": compiler_identity(cc),
+                       "flags": c_writer.STRICT_FLAGS, "optimization": config.optimization}, sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()[:32]
+
+
+# ---------------------------------------------------------------------- generate
+def generate(model, config: CodegenConfig | None = None) -> Bundle:
     """Model -> kernels (CasADi Functions) for every filter family the model asks for."""
-    model = get_model(name)
-    config = config or CodegenConfig().with_overrides(**model.codegen_defaults)
+    model = get_model(model)
+    config = config or default_config(model)
     symbols, functions = Symbols(model), ModelFunctions(model, config)
     kernels = model_kernels(model, symbols, functions)
     for family in model.filters:
         if family not in FAMILIES:
-            raise BuildError(f"model '{name}' asks for filter family '{family}'; known: {sorted(FAMILIES)}")
+            raise BuildError(f"model '{model.name}' asks for filter family '{family}'; known: {sorted(FAMILIES)}")
         kernels += FAMILIES[family](model, symbols, functions)
-    return Bundle(name, kernels, config, model.describe())
+    _check_c_names(model.name, kernels)
+    return Bundle(model.name, kernels, config, model.describe())
 
 
-def content_hash(name: str, config: CodegenConfig, cc: str) -> str:
-    """Hash of everything that determines the generated library."""
+def _check_c_names(model: str, kernels) -> None:
+    """Every generated C function name once (a safety net behind Model.validate's naming rule)."""
+    seen = {"content_hash": "the content hash"}
+    for kernel in kernels:
+        for name in (kernel.name, f"{kernel.name}_v") + ((f"{kernel.name}_run",) if kernel.runnable else ()):
+            if name in seen:
+                raise BuildError(f"model '{model}': C function {model}_{name} would come from both {seen[name]} "
+                                 f"and kernel '{kernel.name}'; rename the measurement")
+            seen[name] = f"kernel '{kernel.name}'"
+
+
+# ---------------------------------------------------------------------- up-to-date checks
+def sha256_file(path: Path) -> str:
     digest = hashlib.sha256()
-    for folder in (MODELS_DIR, CODEGEN_DIR):
-        for path in sorted(folder.rglob("*.py")):
-            digest.update(path.relative_to(folder.parent).as_posix().encode())
-            digest.update(path.read_bytes())
-    digest.update(json.dumps({"model": name, "config": asdict(config), "casadi": ca.__version__,
-                              "cc": cc, "flags": c_writer.STRICT_FLAGS}, sort_keys=True, default=str).encode())
-    return digest.hexdigest()[:32]
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
 
 
-def hashed_library(directory: Path, name: str, key: str) -> Path:
-    """The per-hash copy the runtime loads (so a rebuilt library is never shadowed by dlopen's cache)."""
-    return directory / f"lib{name}.{key[:16]}.so"
-
-
-def is_up_to_date(directory: Path, name: str, key: str) -> bool:
-    manifest = directory / "manifest.json"
+def read_manifest(directory: Path) -> dict | None:
     try:
-        recorded = json.loads(manifest.read_text())["content_hash"]
-    except (OSError, ValueError, KeyError):
-        return False
-    return recorded == key and hashed_library(directory, name, key).exists()
+        manifest = json.loads((directory / "manifest.json").read_text())
+        manifest["content_hash"], manifest["library_sha256"], manifest["hashed_library"]
+        return manifest
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
 
 
+def verified_library(directory: Path, manifest: dict) -> Path | None:
+    """The manifest's library if its SHA-256 matches the recorded one, else None."""
+    name = manifest["hashed_library"]
+    if not isinstance(name, str) or Path(name).name != name or not name.endswith(".so"):
+        return None
+    path = directory / name
+    try:
+        ok = path.is_file() and not path.is_symlink() and sha256_file(path) == manifest["library_sha256"]
+    except OSError:
+        return None
+    return path if ok else None
+
+
+def is_up_to_date(directory: Path, key: str, field: str = "content_hash") -> bool:
+    manifest = read_manifest(directory)
+    return manifest is not None and manifest.get(field) == key and verified_library(directory, manifest) is not None
+
+
+# ---------------------------------------------------------------------- build
 @contextmanager
-def _lock(root: Path, name: str):
-    root.mkdir(parents=True, exist_ok=True)
-    with open(root / f".{name}.lock", "w") as handle:
-        fcntl.flock(handle, fcntl.LOCK_EX)
-        try:
-            yield
-        finally:
-            fcntl.flock(handle, fcntl.LOCK_UN)
+def _lock(root: Path, folder: str):
+    """An exclusive lock per build folder; the lock file is never a followed symlink."""
+    try:
+        fd = os.open(root / f".{folder}.lock", os.O_WRONLY | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC, 0o600)
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise BuildError(f"{root / f'.{folder}.lock'} is a symlink; remove it") from None
+        raise
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)
 
 
-def build_model(name: str, force: bool = False, **overrides) -> BuildResult:
-    """Generate and compile ``build/<name>/`` unless it is already up to date."""
+def _remove_stale(root: Path, folder: str) -> None:
+    """Staging and old folders of ``folder`` left by a killed build (we hold its lock: none is live)."""
+    for pattern in (f".{folder}.tmp-*", f".{folder}.old-*"):
+        for path in root.glob(pattern):
+            shutil.rmtree(path, ignore_errors=True)
+
+
+def build_model(model, force: bool = False, **overrides) -> BuildResult:
+    """Generate and compile the model's build folder unless it is already up to date.
+
+    ``model``: a Model, a module, a paper model's short name, a file path or a module name (see
+    :func:`symkf.models.get_model`); a file is executed afresh. Without a C compiler an up-to-date
+    library (same generated hash) is still returned; otherwise :class:`CompilerNotFound`.
+    """
     start = time.perf_counter()
-    cc = compiler()
-    config = make_config(name, **overrides)
-    key = content_hash(name, config, cc)
-    root = build_root()
-    directory = root / name
-    if not force and is_up_to_date(directory, name, key):
-        return _result(name, directory, key, True, start)
-    with _lock(root, name):
-        if not force and is_up_to_date(directory, name, key):   # another process built it meanwhile
-            return _result(name, directory, key, True, start)
-        staging = Path(tempfile.mkdtemp(prefix=f".{name}.tmp-", dir=root))
+    model = get_model(model)
+    config = CodegenConfig().with_overrides(**{**model.codegen_defaults, **overrides})
+    root = private_root()
+    directory = root / folder_name(model, config)
+    generated = generated_hash(model, config)
+    try:
+        cc = compiler()
+    except CompilerNotFound:
+        if not force and is_up_to_date(directory, generated, "generated_hash"):
+            return _result(model.name, directory, True, start)
+        raise
+    key = content_hash(model, config, cc, generated)
+    if not force and is_up_to_date(directory, key):
+        return _result(model.name, directory, True, start)
+    with _lock(root, directory.name):
+        if not force and is_up_to_date(directory, key):      # another process built it meanwhile
+            return _result(model.name, directory, True, start)
+        _remove_stale(root, directory.name)
+        staging = Path(tempfile.mkdtemp(prefix=f".{directory.name}.tmp-", dir=root))
         try:
-            bundle = generate(name, config)
-            write_bundle(bundle, staging, key)
-            compile_bundle(staging, name, cc, config)
+            bundle = generate(model, config)
+            write_bundle(bundle, staging, key, generated, cc)
+            compile_bundle(staging, model.name, cc, config)
             _install(staging, directory)
         except BaseException:
             shutil.rmtree(staging, ignore_errors=True)
             raise
-    return _result(name, directory, key, False, start)
+    return _result(model.name, directory, False, start)
 
 
-def _result(name: str, directory: Path, key: str, up_to_date: bool, start: float) -> BuildResult:
-    return BuildResult(name, directory, hashed_library(directory, name, key), directory / "manifest.json",
-                       key, up_to_date, time.perf_counter() - start)
+def _result(name: str, directory: Path, up_to_date: bool, start: float) -> BuildResult:
+    manifest = read_manifest(directory) or {}
+    return BuildResult(name, directory, directory / manifest.get("hashed_library", f"lib{name}.so"),
+                       directory / "manifest.json", manifest.get("content_hash", ""), up_to_date,
+                       time.perf_counter() - start)
 
 
-def write_bundle(bundle: Bundle, directory: Path, key: str) -> None:
-    """Write the .c, .h, Makefile and manifest.json of a bundle into ``directory``."""
+def write_bundle(bundle: Bundle, directory: Path, key: str, generated: str, cc: str) -> None:
+    """Write the .c, .h, Makefile and a provisional manifest.json (no library yet)."""
     name = bundle.model_name
     code = c_writer.casadi_source(bundle)
     (directory / f"{name}.c").write_text(c_writer.source(bundle, key, code))
     (directory / f"{name}.h").write_text(c_writer.header(bundle, key))
     (directory / "Makefile").write_text(c_writer.makefile(name, bundle.config.optimization))
-    manifest = {"model": name, "content_hash": key, "casadi_version": ca.__version__,
-                "compiler": os.environ.get("CC", "cc"), "flags": c_writer.STRICT_FLAGS,
+    manifest = {"model": name, "content_hash": key, "generated_hash": generated,
+                "symkf_version": _symkf_version(), "casadi_version": ca.__version__,
+                "compiler": cc, "compiler_identity": compiler_identity(cc), "flags": c_writer.STRICT_FLAGS,
                 "optimization": bundle.config.optimization, "config": asdict(bundle.config),
-                "description": bundle.description,
-                "library": f"lib{name}.so", "hashed_library": hashed_library(directory, name, key).name,
+                "description": bundle.description, "library": f"lib{name}.so",
                 "kernels": [k.as_dict() for k in bundle.kernels]}
     (directory / "manifest.json").write_text(json.dumps(manifest, indent=1))
 
 
 def compile_bundle(directory: Path, name: str, cc: str, config: CodegenConfig) -> None:
-    """Compile lib<name>.so with the strict flags; errors name the compiler output."""
+    """Compile lib<name>.so with the strict flags, copy it to the per-build name Python loads and
+    record that copy's SHA-256 in the manifest."""
     cmd = cc.split() + c_writer.STRICT_FLAGS.split() + config.optimization.split() + [
         "-fPIC", "-shared", "-o", f"lib{name}.so", f"{name}.c", "-lm"]
-    proc = subprocess.run(cmd, cwd=directory, capture_output=True, text=True)
-    if proc.returncode != 0:
-        raise BuildError(f"compiling build/{name}/{name}.c failed ({' '.join(cmd)}):\n{proc.stderr[-4000:]}")
-    key = json.loads((directory / "manifest.json").read_text())["content_hash"]
-    os.link(directory / f"lib{name}.so", hashed_library(directory, name, key))
+    returncode, stderr = run_compiler(cmd, directory)
+    if returncode != 0:
+        raise BuildError(f"compiling {name}.c failed ({' '.join(cmd)}):\n{stderr[-4000:]}")
+    manifest = json.loads((directory / "manifest.json").read_text())
+    loaded = f"lib{name}.{manifest['content_hash'][:12]}.{secrets.token_hex(4)}.so"
+    shutil.copyfile(directory / f"lib{name}.so", directory / loaded)        # a copy, never a hard link
+    manifest.update(hashed_library=loaded, library_sha256=sha256_file(directory / loaded))
+    (directory / "manifest.json").write_text(json.dumps(manifest, indent=1))
+
+
+#: The compiler runs under a shell that kills its whole process group (cc and its cc1, as, ld)
+#: when it receives SIGTERM, which the kernel sends when the building process dies (any signal).
+_GROUP_GUARD = ["/bin/sh", "-c", 'trap "kill -KILL 0" TERM; "$@" & wait $!', "symkf-cc"]
+
+
+def _term_with_parent() -> None:
+    """In the child: SIGTERM when the parent dies (Linux PR_SET_PDEATHSIG; kept across exec)."""
+    try:
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)
+    except (AttributeError, OSError):
+        pass
+
+
+def run_compiler(cmd: list[str], cwd: Path) -> tuple[int, str]:
+    """Run the compiler in its own process group, killed with the group when this process dies
+    or on any exception here (Ctrl-C)."""
+    linux = sys.platform.startswith("linux")
+    proc = subprocess.Popen((_GROUP_GUARD if linux else []) + cmd, cwd=cwd, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True,
+                            preexec_fn=_term_with_parent if linux else None)
+    try:
+        _, stderr = proc.communicate()
+    except BaseException:
+        try:
+            os.killpg(proc.pid, signal.SIGKILL)
+        except OSError:
+            pass
+        proc.wait()
+        raise
+    return proc.returncode, stderr
 
 
 def _install(staging: Path, directory: Path) -> None:
@@ -196,3 +422,15 @@ def _install(staging: Path, directory: Path) -> None:
     os.rename(staging, directory)
     if old is not None:
         shutil.rmtree(old, ignore_errors=True)
+
+
+def export_bundle(result: BuildResult, out: Path) -> list[Path]:
+    """Copy the flight bundle (.c, .h, Makefile, manifest.json, lib<name>.so) into ``out``."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    copied = []
+    for pattern in BUNDLE_FILES:
+        source = result.directory / pattern.format(name=result.model)
+        shutil.copyfile(source, out / source.name)
+        copied.append(out / source.name)
+    return copied

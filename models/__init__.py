@@ -1,28 +1,109 @@
-"""Symbolic models (CasADi SX only). One file per system; ``get_model(name)`` builds one by name."""
+"""Symbolic models (CasADi SX only). A model is any Python file or module whose ``build()`` returns
+a :class:`Model`; :func:`get_model` finds, executes and validates one.
+
+    get_model("launcher")               # a paper model of this package (models/launcher.py)
+    get_model("path/to/tracker.py")     # a file anywhere (ends in .py or contains a path separator)
+    get_model("mypkg.tracker")          # an importable module, by dotted name
+    get_model(module) / get_model(model)
+
+A model's file is read and executed afresh on every call, never served from Python's module cache
+(``sys.modules``) nor from cached bytecode, so an edit made in a running notebook gives the new
+equations on the next build or load.
+"""
 from __future__ import annotations
 
 import importlib
+import importlib.util
+import itertools
+import os
+import sys
+import types
+from pathlib import Path
 
 from .base import Measurement, Model, ModelError, Variable
 
-__all__ = ["Measurement", "Model", "ModelError", "Variable", "get_model", "model_module"]
+__all__ = ["Measurement", "Model", "ModelError", "Variable", "get_model", "PAPER_MODELS"]
+
+MODELS_DIR = Path(__file__).resolve().parent
+#: Short names of the paper models shipped in this package.
+PAPER_MODELS = ("launcher", "attitude", "geo_satellite", "marg")
+_fresh_names = itertools.count()
 
 
-def model_module(name: str):
-    """The module ``symkf.models.<name>``; a new model is a new file, nothing else changes."""
-    if not name.isidentifier():
-        raise ModelError(f"'{name}' is not a model name")
+def get_model(spec) -> Model:
+    """Build and validate the model named by ``spec`` (a Model, a module, a short name, a path or a
+    dotted module name); its file is executed afresh."""
+    if isinstance(spec, Model):
+        return spec.validate()
+    if isinstance(spec, types.ModuleType):
+        return _from_module(spec)
+    if isinstance(spec, os.PathLike):
+        return _from_file(Path(spec), package=None)
+    if not isinstance(spec, str) or not spec:
+        raise ModelError(f"a model is a Model, a module, a file path or a module name, not {type(spec).__name__}")
+    if spec.endswith(".py") or os.sep in spec or "/" in spec:
+        return _from_file(Path(spec), package=None)
+    if spec.isidentifier() and (MODELS_DIR / f"{spec}.py").is_file():
+        return _from_file(MODELS_DIR / f"{spec}.py", package=__name__, display=spec)
+    return _from_module_name(spec)
+
+
+def _from_module(module: types.ModuleType) -> Model:
+    """A module object: its source file executed afresh (a module with no .py file: its build())."""
+    path = getattr(module, "__file__", None)
+    if path and path.endswith(".py") and Path(path).is_file():
+        return _from_file(Path(path), package=module.__package__ or None, display=module.__name__)
+    return _call_build(module, module.__name__)
+
+
+def _from_module_name(name: str) -> Model:
+    if not all(part.isidentifier() for part in name.split(".")):
+        raise ModelError(f"no model '{name}': not a paper model {list(PAPER_MODELS)}, a .py file or a module name")
     try:
-        return importlib.import_module(f"{__name__}.{name}")
-    except ModuleNotFoundError as exc:
-        if exc.name == f"{__name__}.{name}":
-            raise ModelError(f"no model '{name}': expected a file models/{name}.py defining build()") from None
-        raise
+        spec = importlib.util.find_spec(name)
+    except (ImportError, ValueError) as exc:
+        raise ModelError(f"no model '{name}': {exc}") from None
+    if spec is None:
+        raise ModelError(f"no model '{name}': not a paper model {list(PAPER_MODELS)}, "
+                         "and no importable module of that name (a file path must end in .py)")
+    if spec.origin and spec.origin.endswith(".py") and not spec.submodule_search_locations:
+        return _from_file(Path(spec.origin), package=name.rpartition(".")[0] or None, display=name)
+    return _call_build(importlib.import_module(name), name)
 
 
-def get_model(name: str) -> Model:
-    """Build and validate the model defined by ``models/<name>.py``'s ``build()``."""
-    module = model_module(name)
-    if not hasattr(module, "build"):
-        raise ModelError(f"models/{name}.py defines no build() returning a Model")
-    return module.build().validate()
+def _from_file(path: Path, package: str | None, display: str | None = None) -> Model:
+    """Execute ``path`` as a fresh module (source read now; no bytecode cache) and call its build()."""
+    display = display or str(path)
+    try:
+        source = path.read_bytes()
+    except OSError as exc:
+        raise ModelError(f"model file {path}: {exc.strerror or exc}") from None
+    unique = f"_symkf_model_{next(_fresh_names)}_{path.stem if path.stem.isidentifier() else 'file'}"
+    module = types.ModuleType(unique)
+    module.__file__ = str(path.resolve())
+    module.__package__ = package
+    code = compile(source, str(path), "exec", dont_inherit=True)
+    folder = str(path.resolve().parent)
+    added = package is None and folder not in sys.path
+    if added:                              # a model file may import its siblings, as a script can
+        sys.path.insert(0, folder)
+    sys.modules[unique] = module           # dataclasses and pickling look their module up
+    try:
+        exec(code, module.__dict__)
+    finally:
+        sys.modules.pop(unique, None)
+        if added and folder in sys.path:
+            sys.path.remove(folder)
+    return _call_build(module, display)
+
+
+def _call_build(module: types.ModuleType, display: str) -> Model:
+    build = getattr(module, "build", None)
+    if not callable(build):
+        raise ModelError(f"{display} defines no build() returning a Model")
+    model = build()
+    if model is None:
+        raise ModelError(f"{display}: build() returned None; end it with `return model`")
+    if not isinstance(model, Model):
+        raise ModelError(f"{display}: build() returned a {type(model).__name__}, expected a symkf Model")
+    return model.validate()

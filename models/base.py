@@ -8,11 +8,18 @@ CasADi ``SX``; nothing here knows about C. Errors name the state, equation or sh
 """
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field
 from typing import Sequence
 
 import casadi as ca
 import numpy as np
+
+
+_C_IDENTIFIER = re.compile(r"[A-Za-z][A-Za-z0-9_]{0,47}")
+_C_KEYWORDS = frozenset("""auto break case char const continue default do double else enum extern float for goto if
+    inline int long register restrict return short signed sizeof static struct switch typedef union unsigned void
+    volatile while""".split())
 
 
 class ModelError(ValueError):
@@ -82,6 +89,9 @@ class Model:
     #: Stand-alone model functions to export besides the filters ("f", "fd", "jac_fd", "h",
     #: "jac_h"); a model whose filters use none of them may drop some to keep the C small.
     generic_kernels: tuple[str, ...] = ("f", "fd", "jac_fd", "h", "jac_h")
+    #: Equations (state names, measurement names) where the author allows non-differentiable
+    #: operations on states (see :mod:`symkf.models.checks`).
+    nondifferentiable_ok: set[str] = field(default_factory=set)
     _symbols: dict[str, list[ca.SX]] = field(default_factory=lambda: {k: [] for k in "xupw"})
     _pending_q: tuple | None = None
 
@@ -139,8 +149,16 @@ class Model:
         return [v.name for v in self.states]
 
     # ----------------------------------------------------------------- equations
-    def set_dynamics(self, derivatives: dict[str, ca.SX]) -> None:
-        """Set dx/dt, one expression per state name (every state exactly once)."""
+    def set_dynamics(self, derivatives: dict[str, ca.SX], allow_nondifferentiable=()) -> None:
+        """Set dx/dt, one expression per state name (every state exactly once).
+
+        ``allow_nondifferentiable``: state names (or True for all) whose equation may apply floor,
+        sign, fabs, if_else... to states on purpose (otherwise :meth:`validate` refuses it).
+        """
+        from .checks import scalar_expression
+        if not isinstance(derivatives, dict):
+            raise ModelError(f"model '{self.name}': set_dynamics() takes a dict {{state name: d/dt expression}}, "
+                             f"not a {type(derivatives).__name__}")
         names = self.state_names()
         missing = [n for n in names if n not in derivatives]
         extra = [n for n in derivatives if n not in names]
@@ -148,13 +166,13 @@ class Model:
             raise ModelError(
                 f"model '{self.name}': dynamics must give d/dt of every state exactly once; "
                 f"missing {missing}, not states {extra}")
-        rows = []
-        for name in names:
-            expr = ca.SX(derivatives[name])
-            if expr.shape != (1, 1):
-                raise ModelError(f"model '{self.name}': d{name}/dt has shape {expr.shape}, expected (1, 1)")
-            rows.append(expr)
+        rows = [scalar_expression(self.name, f"d{name}/dt", derivatives[name]) for name in names]
         self.f = ca.vertcat(*rows)
+        allowed = names if allow_nondifferentiable is True else list(allow_nondifferentiable or ())
+        unknown = [n for n in allowed if n not in names]
+        if unknown:
+            raise ModelError(f"model '{self.name}': allow_nondifferentiable names {unknown}, which are not states")
+        self.nondifferentiable_ok |= set(allowed)
         self._check_free_symbols("dynamics", self.f, extra_allowed=[])
 
     def measurement_params(self, measurement: str, params: Sequence[tuple[str, str, str]]) -> list[ca.SX]:
@@ -164,8 +182,16 @@ class Model:
         return symbols
 
     def measurement(self, name: str, outputs: Sequence[tuple[str, str, str, ca.SX]],
-                    sigma: Sequence[float], wrap: Sequence[bool] | None = None) -> None:
-        """Add a measurement ``z = h(...)``: (name, unit, description, expression) per component."""
+                    sigma: Sequence[float], wrap: Sequence[bool] | None = None,
+                    allow_nondifferentiable: bool = False) -> None:
+        """Add a measurement ``z = h(...)``: (name, unit, description, expression) per component.
+
+        ``sigma``: the default 1-sigma noise per component (> 0); ``wrap``: angle components;
+        ``allow_nondifferentiable``: h may apply floor, sign, fabs, if_else... to states on purpose.
+        """
+        from .checks import scalar_expression
+        if not isinstance(name, str) or not _C_IDENTIFIER.fullmatch(name):
+            raise ModelError(f"model '{self.name}': measurement name {name!r} must be a C identifier")
         if name in self.measurements:
             raise ModelError(f"model '{self.name}': measurement '{name}' is declared twice")
         pending = self._pending_q
@@ -174,8 +200,16 @@ class Model:
             q_vars, q_syms = pending[1], pending[2]
             self._pending_q = None
         variables = [Variable(n, unit, desc) for n, unit, desc, _ in outputs]
-        h = ca.vertcat(*[ca.SX(expr) for *_, expr in outputs])
-        sigma = np.asarray(sigma, dtype=float).ravel()
+        h = ca.vertcat(*[scalar_expression(self.name, f"measurement '{name}' component '{n}'", expr)
+                         for n, _, _, expr in outputs])
+        try:
+            sigma = np.asarray(sigma, dtype=float).ravel()
+        except (TypeError, ValueError):
+            raise ModelError(f"model '{self.name}': measurement '{name}': sigma must be numbers") from None
+        bad = [(v.name, s) for v, s in zip(variables, sigma) if not (np.isfinite(s) and s > 0)]
+        if bad:
+            raise ModelError(f"model '{self.name}': measurement '{name}' component '{bad[0][0]}': sigma "
+                             f"{bad[0][1]} must be finite and > 0")
         wrap = tuple(bool(b) for b in (wrap if wrap is not None else [False] * len(variables)))
         if sigma.size != len(variables) or len(wrap) != len(variables):
             raise ModelError(f"measurement '{name}': {len(variables)} outputs but {sigma.size} sigmas "
@@ -183,6 +217,8 @@ class Model:
         q = ca.vertcat(*q_syms) if q_syms else ca.SX(0, 1)
         self._check_free_symbols(f"measurement '{name}'", h, extra_allowed=q_syms)
         self.measurements[name] = Measurement(name, variables, h, q_vars, q, sigma, wrap)
+        if allow_nondifferentiable:
+            self.nondifferentiable_ok.add(name)
 
     def _check_free_symbols(self, what: str, expr: ca.SX, extra_allowed: list[ca.SX]) -> None:
         known = {s.name() for kind in self._symbols.values() for s in kind}
@@ -195,10 +231,18 @@ class Model:
     # ----------------------------------------------------------------- checks
     def validate(self) -> "Model":
         """Raise ModelError if the model is incomplete; return self for chaining."""
+        if not isinstance(self.name, str) or not _C_IDENTIFIER.fullmatch(self.name) or self.name in _C_KEYWORDS:
+            raise ModelError(f"model name {self.name!r} must be a C identifier (letters, digits, '_', not "
+                             "starting with a digit or '_', at most 48 characters, not a C keyword): it names "
+                             "the build folder and every C function")
         if self.f is None:
             raise ModelError(f"model '{self.name}': set_dynamics() was never called")
         if not self.states:
             raise ModelError(f"model '{self.name}': no states declared")
+        from . import checks
+        checks.check_equations(self)
+        checks.check_unused(self)
+        checks.check_generated_names(self)
         return self
 
     def describe(self) -> dict:

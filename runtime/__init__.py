@@ -1,16 +1,20 @@
 """The hot path: load a model's compiled library and run its filters from Python.
 
     from symkf.runtime import load
-    launcher = load("launcher")            # builds build/launcher/ first if it is stale
+    launcher = load("launcher")            # a paper model; builds its folder first if it is stale
+    tracker = load("path/to/tracker.py")   # or any file / module whose build() returns a Model
     ekf = launcher.ekf(x0, P0, Q)          # x, P live in buffers the C code writes into
     ekf.predict(t, dt); ekf.update(z, q=station)
 
-Without a C compiler, ``load`` warns and evaluates the very same CasADi Functions in CasADi's
-virtual machine (``backend.kind == "casadi-vm"``).
+A model file is executed afresh on every ``load`` (an edit gives the new equations); the library
+is opened only after its SHA-256 matches the manifest. Without a C compiler, ``load`` uses an
+up-to-date compiled library if there is one, else warns and evaluates the very same CasADi
+Functions in CasADi's virtual machine (``backend.kind == "casadi-vm"``).
 """
 from __future__ import annotations
 
 from symkf.codegen import CompilerNotFound, build_model, generate, make_config
+from symkf.models import get_model
 from .backends import CompiledBackend, StaleLibraryError, SymkfError, VirtualMachineBackend
 from .filters import KalmanFilter, RunResult
 
@@ -40,22 +44,25 @@ class CompiledModel:
         return self.filter("ukf", x0, P0, Q, kappa=kappa, **options)
 
 
-def load(name: str, backend: str = "auto", **overrides) -> CompiledModel:
-    """Build if stale, then load. ``backend``: "auto", "compiled" or "casadi-vm"."""
+def load(model, backend: str = "auto", **overrides) -> CompiledModel:
+    """Build if stale, then load. ``model``: a paper model's short name ("launcher"), a file path
+    ("path/to/tracker.py"), a module name ("mypkg.tracker"), a module or a Model.
+    ``backend``: "auto", "compiled" or "casadi-vm"; ``overrides``: codegen options."""
     if backend not in ("auto", "compiled", "casadi-vm"):
         raise ValueError("backend: expected 'auto', 'compiled' or 'casadi-vm'")
+    model = get_model(model)
     if backend != "casadi-vm":
         try:
-            result = build_model(name, **overrides)
+            result = build_model(model, **overrides)
         except CompilerNotFound as exc:
             if backend == "compiled":
                 raise
-            return _vm_model(name, reason=str(exc), **overrides)
+            return _vm_model(model, reason=str(exc), **overrides)
         compiled = CompiledBackend.from_directory(result.directory)
-        return CompiledModel(name, compiled, compiled.manifest["description"])
-    return _vm_model(name, reason="", **overrides)
+        return CompiledModel(model.name, compiled, compiled.manifest["description"])
+    return _vm_model(model, reason="", **overrides)
 
 
-def _vm_model(name: str, reason: str, **overrides) -> CompiledModel:
-    bundle = generate(name, make_config(name, **overrides))
-    return CompiledModel(name, VirtualMachineBackend(bundle, reason), bundle.description)
+def _vm_model(model, reason: str, **overrides) -> CompiledModel:
+    bundle = generate(model, make_config(model, **overrides))
+    return CompiledModel(model.name, VirtualMachineBackend(bundle, reason), bundle.description)

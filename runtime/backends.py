@@ -10,13 +10,13 @@ from __future__ import annotations
 
 import ctypes
 import functools
-import json
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from symkf.codegen.build import read_manifest, verified_library
 from symkf.codegen.spec import STATUS_CODES, STATUS_NONFINITE, Bundle, Kernel
 
 
@@ -88,8 +88,13 @@ class CompiledBackend:
 
     @classmethod
     def from_directory(cls, directory: Path) -> "CompiledBackend":
-        manifest = json.loads((directory / "manifest.json").read_text())
-        return cls(directory / manifest["hashed_library"], manifest)
+        """The library of a build folder, opened only if its SHA-256 matches the manifest's."""
+        manifest = read_manifest(directory)
+        library = verified_library(directory, manifest) if manifest is not None else None
+        if library is None:
+            raise StaleLibraryError(f"{directory}: the library is missing, damaged or not the one its manifest "
+                                    "records (SHA-256); it was not opened. Rebuild with `symkf build <model>`")
+        return cls(library, manifest)
 
     def bind(self, kernel: str, buffers: dict[str, np.ndarray]) -> "BoundCall":
         info = self.kernels[kernel]

@@ -1,6 +1,9 @@
 """The ``symkf`` command line.
 
-    symkf build <model> [--force]       generate + compile build/<model>/ (content-hash cached)
+    symkf build <model> [--force] [--out DIR] [--set KEY=VALUE ...]
+                                        generate + compile a model (cached by a hash of what is
+                                        generated); <model>: launcher, attitude, geo_satellite,
+                                        marg, path/to/tracker.py or mypkg.tracker
     symkf compare <name> [options]      a paper's experiment (scenarios/<name>/compare.py)
     symkf bench <name> [--json]         timing table (scenarios/<name>/bench.py)
     symkf design-guidance               re-solve the launcher guidance (IPOPT)
@@ -13,9 +16,11 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import json
 import sys
+from pathlib import Path
 
-from symkf.codegen import BuildError, build_model
+from symkf.codegen import BuildError, build_model, export_bundle
 from symkf.models import ModelError
 
 
@@ -30,12 +35,26 @@ def _scenario_module(kind: str, name: str):
         raise
 
 
+def _option(text: str) -> tuple[str, object]:
+    """``KEY=VALUE`` with VALUE read as JSON when it parses (numbers), else as a string."""
+    key, sep, value = text.partition("=")
+    if not sep or not key.isidentifier():
+        raise argparse.ArgumentTypeError(f"expected KEY=VALUE, got '{text}'")
+    try:
+        return key, json.loads(value)
+    except ValueError:
+        return key, value
+
+
 def _cmd_build(args) -> int:
-    result = build_model(args.model, force=args.force)
+    result = build_model(args.model, force=args.force, **dict(args.set or []))
     if result.up_to_date:
-        print(f"{args.model}: up to date ({result.directory}, checked in {result.seconds * 1e3:.0f} ms)")
+        print(f"{result.model}: up to date ({result.directory}, checked in {result.seconds * 1e3:.0f} ms)")
     else:
-        print(f"{args.model}: built {result.directory} in {result.seconds:.1f} s (hash {result.content_hash[:12]})")
+        print(f"{result.model}: built {result.directory} in {result.seconds:.1f} s (hash {result.content_hash[:12]})")
+    if args.out:
+        files = export_bundle(result, args.out)
+        print(f"{result.model}: exported {', '.join(f.name for f in files)} to {args.out}")
     return 0
 
 
@@ -65,9 +84,12 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="symkf", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
-    build = sub.add_parser("build", help="generate and compile build/<model>/")
-    build.add_argument("model")
+    build = sub.add_parser("build", help="generate and compile a model (paper model name, .py file or module)")
+    build.add_argument("model", help="launcher | attitude | geo_satellite | marg | path/to/model.py | package.module")
     build.add_argument("--force", action="store_true", help="rebuild even if up to date")
+    build.add_argument("--out", type=Path, help="also copy the flight bundle (.c .h Makefile manifest .so) here")
+    build.add_argument("--set", type=_option, action="append", metavar="KEY=VALUE",
+                       help="a codegen option, e.g. rk4_substeps=2 (each configuration has its own folder)")
     build.set_defaults(handler=_cmd_build)
     sub.add_parser("compare", help="run a paper's experiment: symkf compare <name> --help")
     sub.add_parser("bench", help="timing table: symkf bench <name> --help")

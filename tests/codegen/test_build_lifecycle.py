@@ -1,17 +1,40 @@
-"""generate -> build -> load: content-hash cache, atomic installs, stale and missing pieces."""
+"""generate -> build -> load: a hash of what is generated, private build roots, verified libraries.
+
+Issue 9: an in-process edit gives new numbers (a fresh process agrees), nothing in the current
+directory is ever loaded, a damaged library is rebuilt (never opened), concurrent builds of two
+configurations both succeed, killed builds leave no staging folder and no compiler behind.
+"""
 import json
 import os
-import shutil
+import signal
 import subprocess
 import sys
+import time
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from symkf.codegen import CompilerNotFound, build, build_model, compiler, content_hash, make_config
+from symkf.codegen import BuildError, CompilerNotFound, build, build_model, compiler, generated_hash, make_config
+from symkf.models import ModelError, get_model
 from symkf.models import launcher as L
 from symkf.runtime import StaleLibraryError, load
 from symkf.runtime.backends import CompiledBackend
+
+
+@pytest.fixture
+def private_build(tmp_path, monkeypatch):
+    root = tmp_path / "build"
+    monkeypatch.setenv("SYMKF_BUILD_DIR", str(root))
+    return root
+
+
+def _filter_numbers(compiled) -> np.ndarray:
+    """Three EKF steps of the tiny cart model; the state after them."""
+    ekf = compiled.ekf([0.0, 1.0], np.eye(2), np.diag([0.0, 0.01]))
+    for k in range(3):
+        ekf.step(0.5 * k, 0.5, [0.4 * (k + 1)])
+    return np.array(ekf.x)
 
 
 def test_unchanged_build_is_up_to_date(launcher_compiled):
@@ -19,54 +42,184 @@ def test_unchanged_build_is_up_to_date(launcher_compiled):
     assert result.up_to_date and result.library.exists()
     manifest = json.loads(result.manifest.read_text())
     assert manifest["content_hash"] == result.content_hash
+    assert manifest["library_sha256"] == build.sha256_file(result.library)
     assert {k["name"] for k in manifest["kernels"]} >= {"ekf_step_radar", "ukf_step_radar", "jac_fd", "jac_h_radar"}
     assert manifest["kernels"][0]["inputs"][0] == {"name": "t", "shape": [1, 1], "unit": "s",
                                                    "description": "time at the start of the step"}
 
 
-def test_editing_a_model_changes_the_hash(tmp_path, monkeypatch):
-    """Any edit under models/ or codegen/ gives a new content hash, so a stale library never matches."""
-    config, cc = make_config("launcher"), compiler()
-    before = content_hash("launcher", config, cc)
-    edited = tmp_path / "models"
-    shutil.copytree(build.MODELS_DIR, edited)
-    source = (edited / "launcher.py").read_text()
-    (edited / "launcher.py").write_text(source.replace("SCALE_HEIGHT = 7.2e3", "SCALE_HEIGHT = 7.3e3"))
-    monkeypatch.setattr(build, "MODELS_DIR", edited)
-    assert content_hash("launcher", config, cc) != before
-    assert not build.is_up_to_date(build.build_root() / "launcher", "launcher", content_hash("launcher", config, cc))
+def test_model_from_a_file_a_module_name_a_module_and_a_model(tmp_path, write_model, monkeypatch):
+    path = write_model(tmp_path / "mypkg" / "tracker.py")
+    (tmp_path / "mypkg" / "__init__.py").write_text("")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    import importlib
+    module = importlib.import_module("mypkg.tracker")
+    names = {get_model(spec).name for spec in (str(path), path, "mypkg.tracker", module, module.build())}
+    assert names == {"tiny"}
+    with pytest.raises(ModelError, match="no model 'nosuch_model_x'"):
+        get_model("nosuch_model_x")
+    with pytest.raises(ModelError, match="missing.py"):
+        get_model(str(tmp_path / "missing.py"))
 
 
-def test_half_written_build_folder_is_rebuilt(tmp_path, monkeypatch):
-    monkeypatch.setenv("SYMKF_BUILD_DIR", str(tmp_path))
-    folder = tmp_path / "launcher"
-    folder.mkdir()
-    (folder / "manifest.json").write_text('{"content_hash": "trunc')          # a crash mid-write
-    (tmp_path / ".launcher.tmp-crashed").mkdir()                            # an abandoned staging dir
-    result = build_model("launcher")
+def test_in_process_edit_gives_new_numbers_and_a_fresh_process_agrees(tmp_path, write_model, private_build):
+    path = write_model(tmp_path / "tracker.py", drag=0.1)
+    before = _filter_numbers(load(str(path)))
+    write_model(path, drag=0.5)                       # same size, same second: no bytecode cache, no mtime
+    after = _filter_numbers(load(str(path)))
+    assert not np.allclose(before, after)
+    script = ("import sys, numpy as np; from symkf.runtime import load; m = load(sys.argv[1]); "
+              "e = m.ekf([0.0, 1.0], np.eye(2), np.diag([0.0, 0.01]))\n"
+              "for k in range(3): e.step(0.5 * k, 0.5, [0.4 * (k + 1)])\n"
+              "print(repr(list(e.x)))")
+    for root in (private_build, tmp_path / "clean"):     # the same build folder, then a clean build
+        env = dict(os.environ, SYMKF_BUILD_DIR=str(root))
+        out = subprocess.run([sys.executable, "-c", script, str(path)], env=env, capture_output=True,
+                             text=True, check=True).stdout
+        np.testing.assert_array_equal(eval(out), after)
+
+
+def test_hash_is_of_what_is_generated(tmp_path, write_model):
+    """File times and other models' files do not matter; an equation or an option does."""
+    a, b = write_model(tmp_path / "a.py"), write_model(tmp_path / "b.py", name="other")
+    config = make_config(str(a))
+    key = generated_hash(get_model(str(a)), config)
+    os.utime(a, (0, 0))
+    write_model(b, drag=0.3, name="other")
+    a.write_text(a.read_text() + "\n# a comment\n")
+    assert generated_hash(get_model(str(a)), config) == key
+    assert generated_hash(get_model(str(a)), make_config(str(a), rk4_substeps=2)) != key
+    write_model(a, drag=0.2)
+    assert generated_hash(get_model(str(a)), config) != key
+
+
+def test_planted_library_in_the_current_directory_is_never_loaded(tmp_path, write_model, monkeypatch):
+    """A regular install builds into the per-user cache, never ./build."""
+    path = write_model(tmp_path / "tracker.py")
+    planted = tmp_path / "cwd" / "build" / "tiny"
+    planted.mkdir(parents=True)
+    (planted / "manifest.json").write_text(json.dumps({"model": "tiny", "content_hash": "x", "library_sha256": "y",
+                                                       "hashed_library": "libtiny.so"}))
+    (planted / "libtiny.so").write_bytes(b"\x7fELF planted")
+    monkeypatch.chdir(tmp_path / "cwd")
+    monkeypatch.delenv("SYMKF_BUILD_DIR")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    monkeypatch.setattr(build, "development_checkout", lambda: None)
+    assert build.build_root() == tmp_path / "cache" / "symkf"
+    compiled = load(str(path))
+    assert Path(compiled.backend.library_path).parent == tmp_path / "cache" / "symkf" / "tiny"
+    assert (planted / "libtiny.so").read_bytes() == b"\x7fELF planted"
+
+
+def test_damaged_or_replaced_library_is_rebuilt_never_opened(tmp_path, write_model, private_build, monkeypatch):
+    """(A library this process has already mapped cannot be protected from in-place damage, so each
+    damaged library here is a fresh build that was never opened.)"""
+    path = write_model(tmp_path / "tracker.py")
+    monkeypatch.setenv("SYMKF_BUILD_DIR", str(tmp_path / "reference"))
+    expected = _filter_numbers(load(str(path)))
+    monkeypatch.setenv("SYMKF_BUILD_DIR", str(private_build))
+    for damage in (lambda p: p.write_bytes(p.read_bytes()[:1000]),                  # truncated
+                   lambda p: p.write_bytes(_flip_byte(p.read_bytes(), 5000))):     # one byte changed
+        library = build_model(str(path), force=True).library
+        damage(library)
+        with pytest.raises(StaleLibraryError, match="SHA-256"):
+            CompiledBackend.from_directory(library.parent)
+        rebuilt = build_model(str(path))
+        assert not rebuilt.up_to_date and rebuilt.library != library
+    np.testing.assert_array_equal(_filter_numbers(load(str(path))), expected)
+    assert os.stat(rebuilt.library).st_ino != os.stat(rebuilt.directory / "libtiny.so").st_ino
+
+
+def _flip_byte(data: bytes, i: int) -> bytes:
+    return data[:i] + bytes([data[i] ^ 0xFF]) + data[i + 1:]
+
+
+def test_build_root_writable_by_others_is_refused(tmp_path, write_model, private_build):
+    private_build.mkdir(mode=0o777)
+    os.chmod(private_build, 0o777)
+    with pytest.raises(BuildError, match="writable by other users"):
+        build_model(str(write_model(tmp_path / "tracker.py")))
+
+
+def test_lock_file_symlink_is_refused(tmp_path, write_model, private_build):
+    private_build.mkdir()
+    (private_build / ".tiny.lock").symlink_to(tmp_path / "victim")
+    with pytest.raises(BuildError, match="symlink"):
+        build_model(str(write_model(tmp_path / "tracker.py")))
+    assert not (tmp_path / "victim").exists()
+
+
+def test_stale_staging_folders_are_cleaned_and_half_written_folder_rebuilt(tmp_path, write_model, private_build):
+    path = write_model(tmp_path / "tracker.py")
+    (private_build / ".tiny.tmp-killed" / "sub").mkdir(parents=True)
+    (private_build / ".tiny.old-1-2").mkdir()
+    (private_build / "tiny").mkdir()
+    (private_build / "tiny" / "manifest.json").write_text('{"content_hash": "trunc')     # a crash mid-write
+    result = build_model(str(path))
     assert not result.up_to_date
-    backend = CompiledBackend.from_directory(result.directory)
-    assert backend.manifest["content_hash"] == result.content_hash
+    assert sorted(p.name for p in private_build.iterdir()) == [".tiny.lock", "tiny"]
 
 
-def test_library_with_another_hash_is_refused(launcher_compiled):
-    manifest = dict(launcher_compiled.backend.manifest, content_hash="0" * 32)
-    with pytest.raises(StaleLibraryError, match="rebuild"):
-        CompiledBackend(launcher_compiled.backend.library_path, manifest)
+def test_concurrent_builds_of_two_configurations_both_succeed(tmp_path, write_model, private_build):
+    path = write_model(tmp_path / "tracker.py")
+    code = ("import sys; from symkf.codegen import build_model; "
+            "r = build_model(sys.argv[1], rk4_substeps=int(sys.argv[2])); print(r.directory.name)")
+    procs = [subprocess.Popen([sys.executable, "-c", code, str(path), str(n)], stdout=subprocess.PIPE, text=True)
+             for n in (1, 2)]
+    folders = [p.communicate(timeout=300)[0].strip() for p in procs]
+    assert all(p.returncode == 0 for p in procs)
+    assert folders[0] == "tiny" and folders[1].startswith("tiny-") and len(folders[1]) == len("tiny-") + 8
+    for n in (1, 2, 1):                                  # switching options back and forth: no rebuild
+        assert build_model(str(path), rk4_substeps=n).up_to_date
+    assert not list(private_build.glob(".*.tmp-*")) and not list(private_build.glob(".*.old-*"))
 
 
-def test_concurrent_builds_both_succeed(tmp_path):
-    code = "from symkf.codegen import build_model; print(build_model('launcher').content_hash)"
-    env = dict(os.environ, SYMKF_BUILD_DIR=str(tmp_path))
-    procs = [subprocess.Popen([sys.executable, "-c", code], env=env, stdout=subprocess.PIPE, text=True)
-             for _ in range(2)]
-    hashes = [p.communicate(timeout=300)[0].strip() for p in procs]
-    assert all(p.returncode == 0 for p in procs) and hashes[0] == hashes[1]
-    assert not list(tmp_path.glob(".launcher.tmp-*")) and not list(tmp_path.glob(".launcher.old-*"))
-    CompiledBackend.from_directory(tmp_path / "launcher")
+def test_killed_build_leaves_no_compiler_running(tmp_path, private_build):
+    code = "from symkf.codegen import build_model; build_model('launcher', rk4_substeps=3)"
+    proc = subprocess.Popen([sys.executable, "-c", code])
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and not _processes_inside(private_build):
+        time.sleep(0.05)
+    assert _processes_inside(private_build), "the compiler never started"
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline and _processes_inside(private_build):
+        time.sleep(0.05)
+    assert not _processes_inside(private_build)
 
 
-def test_missing_compiler_falls_back_to_casadi_vm_with_same_numbers(launcher_compiled, monkeypatch):
+def _processes_inside(folder: Path) -> list[int]:
+    """Processes whose working directory is inside ``folder`` (the compiler runs in the staging folder)."""
+    found = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                if str(Path(os.readlink(entry / "cwd"))).startswith(str(folder)):
+                    found.append(int(entry.name))
+            except OSError:
+                pass
+    return found
+
+
+def test_no_compiler_still_loads_an_up_to_date_library(tmp_path, write_model, private_build, monkeypatch):
+    path = write_model(tmp_path / "tracker.py")
+    expected = _filter_numbers(load(str(path)))
+    monkeypatch.setenv("CC", "no-such-compiler-symkf")
+    compiled = load(str(path))
+    assert compiled.backend.kind == "compiled"
+    np.testing.assert_array_equal(_filter_numbers(compiled), expected)
+
+
+def test_export_bundle_anywhere(tmp_path, write_model, private_build):
+    from symkf.scenarios.cli import main
+    out = tmp_path / "flight"
+    assert main(["build", str(write_model(tmp_path / "tracker.py")), "--out", str(out)]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["Makefile", "libtiny.so", "manifest.json", "tiny.c", "tiny.h"]
+
+
+def test_missing_compiler_falls_back_to_casadi_vm_with_same_numbers(launcher_compiled, tmp_path, monkeypatch):
+    monkeypatch.setenv("SYMKF_BUILD_DIR", str(tmp_path / "empty"))
     monkeypatch.setenv("CC", "no-such-compiler-symkf")
     with pytest.raises(CompilerNotFound, match="no C compiler found") as info:
         compiler()
@@ -83,3 +236,9 @@ def test_missing_compiler_falls_back_to_casadi_vm_with_same_numbers(launcher_com
                 f.step(0.05 * k, 0.05, [60.0 + 20 * k, 1.2, 2.5], q=L.station_params(1))
         np.testing.assert_allclose(a.x, b.x, rtol=1e-12)
         np.testing.assert_allclose(a.P, b.P, rtol=1e-9, atol=1e-12 * np.abs(b.P).max())
+
+
+def test_library_with_another_hash_is_refused(launcher_compiled):
+    manifest = dict(launcher_compiled.backend.manifest, content_hash="0" * 32)
+    with pytest.raises(StaleLibraryError, match="rebuild"):
+        CompiledBackend(launcher_compiled.backend.library_path, manifest)
