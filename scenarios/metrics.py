@@ -54,6 +54,14 @@ class ErrorAccumulator:
         self.nees += nees_values
         self.runs += 1
 
+    def merge(self, other: "ErrorAccumulator") -> None:
+        """Add another accumulator's sums (e.g. a campaign task's runs) to these."""
+        if (other.n_steps, other.n_states, other.nees_stride) != (self.n_steps, self.n_states, self.nees_stride):
+            raise ValueError("merge: accumulators of different shapes")
+        self.squared_error += other.squared_error
+        self.nees += other.nees
+        self.runs += other.runs
+
     def rms(self) -> np.ndarray:
         """Eq (8): epsilon_i(k) = sqrt(mean over runs of error^2), shape (n_steps, n)."""
         return np.sqrt(self.squared_error / max(self.runs, 1))

@@ -26,6 +26,8 @@ import numpy as np
 
 from symkf.models import geo_satellite as geo
 from symkf.runtime.geo import LoopResult, LoopSettings, closed_loop_eigenvalues, geometry_rank, simulate
+from symkf.scenarios.campaign import (ModelKey, Task, add_scheduler_arguments, compiled_model, model_key, run_campaign,
+                                      scheduler_problem)
 
 DEFAULT_DURATION = 1000.0
 #: Converged: the attitude error over the last 10 % stays under this (deg) or 5 % of its peak.
@@ -245,10 +247,26 @@ def plot_case(case: int, results: dict, out: Path) -> Path:
 
 
 # ---------------------------------------------------------------------- driver
-def run_case(case: int, duration: float = DEFAULT_DURATION, previous: dict | None = None) -> tuple[dict, dict]:
+def simulate_run(key: ModelKey, settings: LoopSettings) -> LoopResult:
+    """One closed loop (a campaign task: the compiled model comes from its content hash)."""
+    return simulate(settings, compiled_model(key) if settings.units == "paper" else None)
+
+
+def simulate_runs(runs: dict[str, LoopSettings], scheduler: str | None = None, workers: int | None = 1) -> dict:
+    """Every named closed loop, through the shared campaign helper (default: one local thread, as
+    the loops are mostly Python; ``workers`` or a Dask ``scheduler`` spread them)."""
+    key = model_key("geo_satellite")
+    results: dict[str, LoopResult] = {}
+    tasks = [Task(f"geo-{name}", simulate_run, (key, settings)) for name, settings in runs.items()]
+    run_campaign(tasks, lambda task, result: results.__setitem__(task.label[4:], result), scheduler, workers)
+    return results
+
+
+def run_case(case: int, duration: float = DEFAULT_DURATION, previous: dict | None = None,
+             scheduler: str | None = None, workers: int | None = 1) -> tuple[dict, dict]:
     """Simulate one case; returns (results by run name, summary entry with metrics and claims)."""
     start = time.perf_counter()
-    results = {name: simulate(settings) for name, settings in case_runs(case, duration).items()}
+    results = simulate_runs(case_runs(case, duration), scheduler, workers)
     metrics = {name: run_metrics(r) for name, r in results.items()}
     previous = previous or {}
     if case == 1:
@@ -267,23 +285,28 @@ def run_case(case: int, duration: float = DEFAULT_DURATION, previous: dict | Non
 
 def _reference(case: int, duration: float, names: list[str] | None = None) -> dict:
     runs = case_runs(case, duration)
-    return {name: simulate(settings) for name, settings in runs.items() if names is None or name in names}
+    return simulate_runs({name: settings for name, settings in runs.items() if names is None or name in names})
 
 
 def add_arguments(parser) -> None:
     parser.add_argument("--case", default="all", choices=["1", "2", "3", "4", "all"])
     parser.add_argument("--duration", type=float, default=DEFAULT_DURATION, help="simulated seconds per run")
     parser.add_argument("--out", default="results/geo")
+    add_scheduler_arguments(parser, default_workers=1)
 
 
 def run(args) -> int:
+    scheduler, workers = getattr(args, "scheduler", None), getattr(args, "workers", 1)
+    problem = scheduler_problem(scheduler, workers)
+    if problem:
+        raise SystemExit(problem)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     cases = [1, 2, 3, 4] if args.case == "all" else [int(args.case)]
     summary = {"paper": "003 (Park 2005), Table 7", "duration_s": args.duration, "cases": {}}
     previous: dict = {}
     for case in cases:
-        results, entry = run_case(case, args.duration, previous)
+        results, entry = run_case(case, args.duration, previous, scheduler, workers)
         previous[case] = results
         entry["figure"] = str(plot_case(case, results, out))
         summary["cases"][f"case{case}"] = entry

@@ -17,17 +17,17 @@ Filter tuning (ours; the paper gives none), in ``TUNING``:
 """
 from __future__ import annotations
 
-import os
+import threading
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from functools import lru_cache
 
 import numpy as np
 
 from symkf.models import launcher as L
-from symkf.runtime import load
-from .truth import propagate, radar_track
+from symkf.scenarios.campaign import ModelKey, Task, chunks, compiled_model, model_key, run_campaign, run_rng
 from symkf.scenarios.metrics import ErrorAccumulator, nees, nees_band, state_error, whole_flight_mean
+from .truth import propagate, radar_track
 
 STATE_NAMES = ("V", "gamma", "psi", "r", "theta", "phi")
 ANGLE_STATES = np.array([False, True, True, False, True, True])
@@ -74,13 +74,28 @@ class CaseResult:
     excursion_runs: dict[str, list[int]] = field(default_factory=dict)
     #: the same metrics over the runs that did not diverge (None if none diverged)
     errors_converged: dict[str, ErrorAccumulator] = field(default_factory=dict)
+    #: per-run rows (columns PER_RUN_COLUMNS) in run order, as folded task by task
+    per_run_chunks: dict[str, list[np.ndarray]] = field(default_factory=dict)
 
     @classmethod
     def empty(cls, case: Case, times: np.ndarray) -> "CaseResult":
         def accumulators():
             return {f: ErrorAccumulator(len(times), 6, NEES_STRIDE) for f in FILTERS}
         return cls(case, times, accumulators(), {f: 0.0 for f in FILTERS}, {f: 0 for f in FILTERS},
-                   {f: [] for f in FILTERS}, {f: [] for f in FILTERS}, accumulators())
+                   {f: [] for f in FILTERS}, {f: [] for f in FILTERS}, accumulators(), {f: [] for f in FILTERS})
+
+    def add_per_run(self, family: str, rows: np.ndarray) -> None:
+        """Fold a task's per-run rows: failed steps, diverged and excursion runs, the rows kept."""
+        columns = {name: i for i, name in enumerate(PER_RUN_COLUMNS)}
+        self.per_run_chunks[family].append(rows)
+        self.failed_steps[family] += int(rows[:, columns["failed_steps"]].sum())
+        for kind in ("diverged", "excursion"):
+            runs = rows[rows[:, columns[kind]] > 0, columns["run"]].astype(int).tolist()
+            getattr(self, f"{kind}_runs")[family].extend(runs)
+
+    def per_run(self, family: str) -> np.ndarray:
+        """One row per run (columns PER_RUN_COLUMNS), in run order."""
+        return np.vstack([np.zeros((0, len(PER_RUN_COLUMNS))), *self.per_run_chunks[family]])
 
     def rms_in_table_units(self, family: str, converged_only: bool = False) -> np.ndarray:
         """RMS per time, angles converted to degrees (Table 3's units)."""
@@ -101,64 +116,116 @@ def flight_times(rate_hz: int, duration: float) -> np.ndarray:
     return np.arange(int(round(duration * rate_hz)) + 1) / rate_hz
 
 
+#: Runs per task: fixes how per-run sums are grouped (so totals do not depend on the worker count).
+CHUNK_RUNS = 5
+#: Per-run summary columns (``CaseResult.per_run[family]``, one row per run, in run order).
+PER_RUN_COLUMNS = ("run", "failed_steps", "diverged", "excursion", "mean_nees",
+                   *(f"mean_sq_error_{s}" for s in STATE_NAMES), *(f"final_error_{s}" for s in STATE_NAMES))
+
+
+_TRUTH_LOCK = threading.Lock()
+
+
+def case_flight(rate_hz: int, duration: float):
+    """(times, truth, radar track) of one radar rate, computed once per process (deterministic).
+    Serialised: CasADi's CVODES integrator must not be called from two threads at once."""
+    with _TRUTH_LOCK:
+        return _case_flight(rate_hz, duration)
+
+
+@lru_cache(maxsize=8)
+def _case_flight(rate_hz: int, duration: float):
+    times = flight_times(rate_hz, duration)
+    truth = propagate(times)
+    return times, truth, radar_track(times, truth)
+
+
+def measurements(seed: int, case: Case, run: int, track) -> np.ndarray:
+    """Radar draws for one run: a function of (seed, case, run) only, shared by both filters
+    (and the same whichever other cases a campaign includes or wherever the run executes)."""
+    init = ("small", "large").index(case.initial_error)
+    return track.noisy(run_rng(seed, case.rate_hz, init, run))
+
+
+@dataclass
+class ChunkResult:
+    """What one task returns: sums over its runs and one summary row per run (no histories)."""
+
+    errors: dict[str, ErrorAccumulator]
+    errors_converged: dict[str, ErrorAccumulator]
+    per_run: dict[str, np.ndarray]
+    wall_s: dict[str, float]
+
+
+def run_chunk(key: ModelKey, case: Case, seed: int, runs: tuple[int, int], duration: float,
+              tuning: dict) -> ChunkResult:
+    """Runs ``runs[0] .. runs[1] - 1`` of one case through both filters (a campaign task; runs on
+    any worker: the model comes from its content hash, the truth is recomputed, the draws are keyed)."""
+    model = compiled_model(key)
+    times, truth, track = case_flight(case.rate_hz, duration)
+    q = track.station_params()
+    x0, P0 = initial_estimate(case, truth[0], tuning["P0_floor"])
+
+    def accumulators():
+        return {f: ErrorAccumulator(len(times), 6, NEES_STRIDE) for f in FILTERS}
+    out = ChunkResult(accumulators(), accumulators(), {f: [] for f in FILTERS}, {f: 0.0 for f in FILTERS})
+    for run in range(*runs):
+        z = measurements(seed, case, run, track)
+        for family in FILTERS:
+            f = model.filter(family, x0, P0, tuning["Q"], kappa=tuning["kappa"])
+            start = time.perf_counter()
+            result = f.run(times, z, q=q)
+            out.wall_s[family] += time.perf_counter() - start
+            error = state_error(truth, result.x, ANGLE_STATES)
+            squared, nees_values = error**2, nees(error[::NEES_STRIDE], result.P[::NEES_STRIDE])
+            kind = outcome(error)
+            out.errors[family].add_run(squared, nees_values)
+            if kind != "diverged":
+                out.errors_converged[family].add_run(squared, nees_values)
+            out.per_run[family].append([run, np.count_nonzero(result.status), kind == "diverged",
+                                        kind == "excursion", nees_values.mean(), *squared.mean(axis=0), *error[-1]])
+    out.per_run = {f: np.array(rows, dtype=float).reshape(-1, len(PER_RUN_COLUMNS)) for f, rows in out.per_run.items()}
+    return out
+
+
 class Campaign:
-    """Runs the cases; ``progress(done, total)`` is called after every Monte Carlo run."""
+    """Runs the cases; ``progress(done, total)`` is called as Monte Carlo runs complete.
+
+    ``scheduler``: None (local threads, ``workers`` of them), ``"local:N"`` (a Dask LocalCluster)
+    or a Dask scheduler address; see :mod:`symkf.scenarios.campaign`.
+    """
 
     def __init__(self, runs: int, seed: int, rates=L.RADAR_RATES_HZ, duration: float = L.T_INSERTION,
-                 workers: int | None = None, progress=None, tuning: dict | None = None):
+                 workers: int | None = None, progress=None, tuning: dict | None = None,
+                 scheduler: str | None = None):
         self.runs, self.seed, self.duration = runs, seed, duration
         self.cases = [Case(rate, init) for rate in rates for init in ("small", "large")]
-        self.workers = workers or os.cpu_count() or 1
+        self.workers, self.scheduler = workers, scheduler
         self.progress = progress or (lambda done, total: None)
-        self.model = load("launcher")
+        self.model_key = model_key("launcher")
         self.tuning = {**TUNING, **(tuning or {})}
+        self.stats = None
 
-    def run(self) -> list[CaseResult]:
-        total, done = len(self.cases) * self.runs, 0
-        results = []
-        for case in self.cases:
-            times = flight_times(case.rate_hz, self.duration)
-            truth = propagate(times)
-            track = radar_track(times, truth)
-            result = CaseResult.empty(case, times)
-            with ThreadPoolExecutor(self.workers) as pool:
-                jobs = [pool.submit(self._one_run, case, run, truth, track) for run in range(self.runs)]
-                for run, job in enumerate(jobs):
-                    for family, (squared_error, nees_values, failed, wall, outcome) in job.result().items():
-                        result.errors[family].add_run(squared_error, nees_values)
-                        result.wall_s[family] += wall
-                        result.failed_steps[family] += failed
-                        if outcome == "diverged":
-                            result.diverged_runs[family].append(run)
-                        else:
-                            result.errors_converged[family].add_run(squared_error, nees_values)
-                        if outcome == "excursion":
-                            result.excursion_runs[family].append(run)
-                    done += 1
-                    self.progress(done, total)
-            results.append(result)
-        return results
+    def tasks(self) -> list[Task]:
+        return [Task(f"{case.rate_hz}Hz-{case.initial_error}-{r.start}", run_chunk,
+                     (self.model_key, case, self.seed, (r.start, r.stop), self.duration, self.tuning), len(r))
+                for case in self.cases for r in chunks(self.runs, CHUNK_RUNS)]
+
+    def run(self, executor=None) -> list[CaseResult]:
+        results = {case: CaseResult.empty(case, flight_times(case.rate_hz, self.duration)) for case in self.cases}
+
+        def fold(task: Task, chunk: ChunkResult) -> None:
+            result = results[task.args[1]]
+            for family in FILTERS:
+                result.errors[family].merge(chunk.errors[family])
+                result.errors_converged[family].merge(chunk.errors_converged[family])
+                result.wall_s[family] += chunk.wall_s[family]
+                result.add_per_run(family, chunk.per_run[family])
+        self.stats = run_campaign(self.tasks(), fold, self.scheduler, self.workers, self.progress, executor)
+        return list(results.values())
 
     def measurements(self, case: Case, run: int, track) -> np.ndarray:
-        """Radar draws for one run: a function of (seed, case, run) only, shared by both filters
-        (and the same whichever other cases a campaign includes)."""
-        init = ("small", "large").index(case.initial_error)
-        return track.noisy(np.random.default_rng([self.seed, case.rate_hz, init, run]))
-
-    def _one_run(self, case: Case, run: int, truth, track) -> dict:
-        z = self.measurements(case, run, track)
-        q = track.station_params()
-        x0, P0 = initial_estimate(case, truth[0], self.tuning["P0_floor"])
-        outputs = {}
-        for family in FILTERS:
-            f = self.model.filter(family, x0, P0, self.tuning["Q"], kappa=self.tuning["kappa"])
-            start = time.perf_counter()
-            result = f.run(track.times, z, q=q)
-            wall = time.perf_counter() - start
-            error = state_error(truth, result.x, ANGLE_STATES)
-            outputs[family] = (error**2, nees(error[::NEES_STRIDE], result.P[::NEES_STRIDE]),
-                               int(np.count_nonzero(result.status)), wall, outcome(error))
-        return outputs
+        return measurements(self.seed, case, run, track)
 
 
 def consistency(result: CaseResult, family: str) -> dict:

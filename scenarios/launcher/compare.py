@@ -17,6 +17,7 @@ import numpy as np
 
 from symkf.models import launcher as L
 from . import campaign as C
+from symkf.scenarios.campaign import ProgressBar, add_scheduler_arguments, scheduler_problem
 from .campaign import FILTERS, STATE_NAMES, TUNING, Campaign, CaseResult, consistency
 
 UNITS = dict(zip(STATE_NAMES, L.TABLE3_UNITS))
@@ -36,6 +37,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--q-scale", type=float, default=1.0,
                         help="multiply the process-noise density Q by this factor (default 1)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar, no table")
+    add_scheduler_arguments(parser)
 
 
 def run(args) -> int:
@@ -45,10 +47,15 @@ def run(args) -> int:
         print(f"symkf compare launcher: rates must be among {L.RADAR_RATES_HZ}, runs >= 1, "
               f"0 < duration <= {L.T_INSERTION}, kappa > -6 and q-scale > 0", file=sys.stderr)
         return 2
+    problem = scheduler_problem(args.scheduler, args.workers)
+    if problem:
+        print(f"symkf compare launcher: {problem}", file=sys.stderr)
+        return 2
     tuning = {"kappa": args.kappa, "Q": TUNING["Q"] * args.q_scale}
     progress = None if args.quiet else ProgressBar()
     start = time.perf_counter()
-    campaign = Campaign(args.runs, args.seed, rates, args.duration, progress=progress, tuning=tuning)
+    campaign = Campaign(args.runs, args.seed, rates, args.duration, workers=args.workers, progress=progress,
+                        tuning=tuning, scheduler=args.scheduler)
     results = campaign.run()
     wall = time.perf_counter() - start
     out = Path(args.out)
@@ -67,26 +74,8 @@ def run(args) -> int:
             if isinstance(value, bool):
                 print(f"  {claim}: {value}")
         print(f"  ukf_le_ekf_every_state: {summary['claims']['ukf_le_ekf_every_state']}")
-        print(f"wrote {out}/ in {wall:.1f} s")
+        print(f"wrote {out}/ in {wall:.1f} s ({campaign.stats.executor}, {campaign.stats.workers} workers)")
     return 0
-
-
-class ProgressBar:
-    """A one-line progress bar on stderr (a line per 10 % when stderr is not a terminal)."""
-
-    def __init__(self, width: int = 40):
-        self.width, self.start = width, time.perf_counter()
-        self.interactive = sys.stderr.isatty()
-
-    def __call__(self, done: int, total: int) -> None:
-        filled = int(self.width * done / total)
-        elapsed = time.perf_counter() - self.start
-        text = f"[{'#' * filled}{'.' * (self.width - filled)}] {done}/{total} runs, {elapsed:.1f} s"
-        if self.interactive:
-            sys.stderr.write("\r" + text + ("\n" if done == total else ""))
-        elif done == total or (10 * done) // total != (10 * (done - 1)) // total:
-            sys.stderr.write(text + "\n")
-        sys.stderr.flush()
 
 
 # ---------------------------------------------------------------------- tables

@@ -1,0 +1,162 @@
+"""The shared campaign helper (scenarios/campaign.py): task-order folding, exactly-once counting,
+bounded in-flight work; and a small launcher campaign on threads vs a 2-process Dask LocalCluster,
+including one whose worker is killed mid-campaign."""
+import os
+import signal
+import threading
+from concurrent.futures import Future
+
+import numpy as np
+import pytest
+
+from symkf.scenarios import campaign as H
+from symkf.scenarios.launcher import campaign as C
+
+
+class LostWorker(Exception):
+    pass
+
+
+class ShuffledExecutor:
+    """Completes in-flight tasks in reverse order; the first attempt of task 2 is 'lost'."""
+
+    workers, name = 2, "shuffled"
+    lost_errors = (LostWorker,)
+
+    def __init__(self):
+        self.attempts, self.max_in_flight, self._in_flight = {}, 0, set()
+
+    def submit(self, task):
+        future = Future()
+        index = task.args[0]
+        self.attempts[index] = self.attempts.get(index, 0) + 1
+        if index == 2 and self.attempts[index] == 1:
+            future.set_exception(LostWorker())
+        else:
+            future.set_result(task.function(*task.args))
+        self._in_flight.add(future)
+        self.max_in_flight = max(self.max_in_flight, len(self._in_flight))
+        return future
+
+    def wait_any(self, futures):
+        chosen = list(futures)[-1]
+        self._in_flight.discard(chosen)
+        return [chosen]
+
+    @staticmethod
+    def result(future):
+        return future.result()
+
+
+def square(i):
+    return i * i
+
+
+def test_results_fold_in_task_order_exactly_once_with_a_bounded_window():
+    tasks = [H.Task(f"t{i}", square, (i,), runs=2) for i in range(10)]
+    folded, progress = [], []
+    executor = ShuffledExecutor()
+    stats = H.run_campaign(tasks, lambda task, r: folded.append((task.label, r)), executor=executor,
+                           window=3, progress=lambda done, total: progress.append((done, total)))
+    assert folded == [(f"t{i}", i * i) for i in range(10)]
+    assert stats.tasks == 10 and stats.runs == 20 and stats.resubmitted == 1 and executor.attempts[2] == 2
+    assert executor.max_in_flight <= 3
+    assert progress[0] == (0, 20) and progress[-1] == (20, 20)
+    assert [d for d, _ in progress] == sorted(d for d, _ in progress)
+
+
+def test_run_streams_are_keyed_not_sequential():
+    a = H.run_rng(5, 20, 1, 7).normal(size=3)
+    np.testing.assert_array_equal(a, H.run_rng(5, 20, 1, 7).normal(size=3))
+    assert not np.array_equal(a, H.run_rng(5, 20, 1, 8).normal(size=3))
+    assert [len(r) for r in H.chunks(12, 5)] == [5, 5, 2]
+
+
+def test_scheduler_arguments_are_checked():
+    assert H.scheduler_problem(None, None) is None and H.scheduler_problem("local:2", None) is None
+    assert "local:N" in H.scheduler_problem("local:0", None)
+    assert "tcp://" in H.scheduler_problem("somehost", None)
+    assert "--workers" in H.scheduler_problem(None, 0)
+    with pytest.raises(ValueError):
+        H.make_executor("local:x")
+
+
+def test_a_worker_refuses_a_model_it_cannot_reproduce(launcher_compiled):
+    with pytest.raises(RuntimeError, match="content hash"):
+        H.compiled_model(H.ModelKey("launcher", "0" * 64))
+
+
+# ---------------------------------------------------------------------- Dask
+RUNS, SEED, DURATION = 10, 17, 60.0
+
+
+def per_run_tables(results):
+    return {(r.case.label, f): r.per_run(f) for r in results for f in C.FILTERS}
+
+
+@pytest.fixture(scope="module")
+def cluster(launcher_compiled):
+    distributed = pytest.importorskip("distributed")
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0") as c:
+        yield c
+
+
+@pytest.fixture(scope="module")
+def on_threads(launcher_compiled):
+    return C.Campaign(RUNS, SEED, rates=(20,), duration=DURATION, workers=2).run()
+
+
+def test_dask_local_cluster_gives_bit_identical_per_run_results(cluster, on_threads):
+    executor = H.DaskExecutor(cluster.scheduler_address)
+    try:
+        campaign = C.Campaign(RUNS, SEED, rates=(20,), duration=DURATION)
+        on_dask = campaign.run(executor)
+    finally:
+        executor.close()
+    assert campaign.stats.executor.startswith("dask") and campaign.stats.workers == 2
+    threads, dask = per_run_tables(on_threads), per_run_tables(on_dask)
+    for key in threads:
+        assert threads[key].shape == (RUNS, len(C.PER_RUN_COLUMNS))
+        np.testing.assert_array_equal(threads[key], dask[key])
+    for a, b in zip(on_threads, on_dask):
+        for f in C.FILTERS:
+            np.testing.assert_array_equal(a.errors[f].rms(), b.errors[f].rms())
+            np.testing.assert_array_equal(a.errors[f].mean_nees(), b.errors[f].mean_nees())
+
+
+def test_a_worker_killed_mid_campaign_loses_no_run_and_counts_none_twice(cluster, on_threads):
+    executor = H.DaskExecutor(cluster.scheduler_address)
+    campaign = C.Campaign(RUNS, SEED, rates=(20,), duration=DURATION, workers=2)
+    tasks = campaign.tasks()
+    killed = {}
+    lock = threading.Lock()
+
+    def kill_a_busy_worker(task, chunk):
+        with lock:
+            if not killed:
+                busy = [w for w, keys in executor.client.processing().items() if keys]
+                assert busy, "no task in flight to lose: make the test's runs longer"
+                pid = executor.client.run(os.getpid, workers=[busy[0]])[busy[0]]
+                os.kill(pid, signal.SIGKILL)
+                killed.update(worker=busy[0], pid=pid)
+        fold(task, chunk)
+
+    results = {case: C.CaseResult.empty(case, C.flight_times(case.rate_hz, DURATION)) for case in campaign.cases}
+
+    def fold(task, chunk):
+        result = results[task.args[1]]
+        for f in C.FILTERS:
+            result.errors[f].merge(chunk.errors[f])
+            result.add_per_run(f, chunk.per_run[f])
+    try:
+        stats = H.run_campaign(tasks, kill_a_busy_worker, executor=executor, window=len(tasks))
+    finally:
+        executor.close()
+    assert killed and stats.tasks == len(tasks) and stats.runs == 2 * RUNS
+    threads = per_run_tables(on_threads)
+    for case, result in results.items():
+        for f in C.FILTERS:
+            table = result.per_run(f)
+            np.testing.assert_array_equal(table[:, 0], np.arange(RUNS))      # every run once, in order
+            np.testing.assert_array_equal(table, threads[(case.label, f)])
+            assert result.errors[f].runs == RUNS
