@@ -94,6 +94,7 @@ class ModelFunctions:
         self.jac_fd = ca.Function(f"{prefix}_jac_fd", args, [F], names, ["F"], options)
         # f_d and F together share the primal evaluation (the EKF prediction needs both)
         self.fd_and_jac = ca.Function(f"{prefix}_fd_and_jac", args, [x_next, F], names, ["x", "F"], options)
+        self.noise_gain = noise_gain(model) if model.noises else None
         self.h, self.jac_h = {}, {}
         for name in model.measurements:
             h = measurement_function(model, name)
@@ -103,6 +104,16 @@ class ModelFunctions:
             self.h[name] = ca.Function(f"{prefix}_h_{name}", hargs, [z], hnames, ["z"], options)
             self.jac_h[name] = ca.Function(f"{prefix}_jac_h_{name}", hargs, [ca.densify(ca.jacobian(z, hx))],
                                            hnames, ["H"], options)
+
+
+def noise_gain(model: Model) -> ca.Function:
+    """G(t, x, u, p) = df/dw at w = 0 (n x nw): how the process noises w enter the dynamics."""
+    f = continuous_dynamics(model)
+    w = ca.SX.sym("w", len(model.noises))
+    G = ca.jacobian(f(model.t, model.x, model.u, model.p, w), w)
+    G = ca.densify(ca.substitute(G, w, ca.DM.zeros(len(model.noises))))
+    return ca.Function(f"{model.name}_noise_gain", [model.t, model.x, model.u, model.p], [G],
+                       ["t", "x", "u", "p"], ["G"], FUNCTION_OPTIONS)
 
 
 def make_kernel(name: str, doc: str, symbols: Symbols, extra_sym: dict, extra_arg: dict,

@@ -97,7 +97,9 @@ class KalmanFilter:
         compiled: a :class:`~symkf.runtime.CompiledModel`.
         family: "ekf" or "ukf".
         x0, P0: initial state and covariance.
-        Q: process-noise power spectral density (n x n); discrete noise is Q dt.
+        Q: process-noise power spectral density: n x n, additive (discrete noise Q dt), or, for a
+            model that declares noise(), nw x nw of its noises w (discrete noise G Q G^T dt,
+            G = df/dw at the step start; see codegen/families/kalman.py).
         R: {measurement: covariance}; defaults to diag(sigma^2) from the model.
         p: runtime parameters (default: the model's defaults).
         kappa: UKF scaling (Julier); ignored by the EKF.
@@ -110,7 +112,8 @@ class KalmanFilter:
         self.n = n
         self._buffers = {"t": np.zeros(1), "dt": np.zeros(1), "x": np.zeros(n), "P": _matrix((n, n)),
                          "u": np.zeros(len(self.model["inputs"])), "p": np.zeros(len(self.model["params"])),
-                         "Q": _matrix((n, n)), "kappa": np.array([float(kappa)])}
+                         "Q": _matrix(dict(compiled.backend.kernels[f"{family}_predict"].inputs)["Q"]),
+                         "kappa": np.array([float(kappa)])}
         self._buffers["p"][:] = [q["default"] for q in self.model["params"]] if p is None else \
             as_array("p", p, (len(self.model["params"]),))
         self.x = x0
@@ -176,7 +179,7 @@ class KalmanFilter:
 
     @Q.setter
     def Q(self, value) -> None:
-        value = as_array("Q", value, (self.n, self.n))
+        value = as_array("Q", value, self._buffers["Q"].shape)
         if not np.isfinite(value).all():
             raise ValueError("Q: contains NaN or Inf")
         self._buffers["Q"][:] = value

@@ -48,16 +48,24 @@ class ReferenceFilter:
 
     # ---------------------------------------------------------------- steps
     def predict(self, t: float, dt: float) -> None:
+        noise = self.process_noise(t, dt)
         if self.family == "ekf":
             F = np.array(self.functions.jac_fd(t, dt, self.x, self.u, self.p))
             self.x = self._fd(t, dt, self.x)
-            self.P = _sym(F @ self.P @ F.T + self.Q * dt)
+            self.P = _sym(F @ self.P @ F.T + noise)
             return
         points, weights = self._sigma_points(self.x, self.P)
         propagated = [self._fd(t, dt, pt) for pt in points]
         x = sum(w * pt for w, pt in zip(weights, propagated))
-        P = sum(w * np.outer(pt - x, pt - x) for w, pt in zip(weights, propagated)) + self.Q * dt
+        P = sum(w * np.outer(pt - x, pt - x) for w, pt in zip(weights, propagated)) + noise
         self.x, self.P = x, _sym(P)
+
+    def process_noise(self, t: float, dt: float) -> np.ndarray:
+        """Q dt (additive), or G Q G^T dt with G = df/dw at the step start (a model with noise())."""
+        if self.functions.noise_gain is None:
+            return self.Q * dt
+        G = np.array(self.functions.noise_gain(t, self.x, self.u, self.p))
+        return G @ self.Q @ G.T * dt
 
     def update(self, z, name: str, t: float, q, mask=None) -> None:
         z = np.asarray(z, float)

@@ -1,8 +1,15 @@
 """Fused EKF and UKF steps as CasADi Functions (kernels), derived from a Model.
 
-EKF (additive noise): x- = f_d(x), P- = F P F^T + Q dt; update with the Joseph form
-P+ = (I - K H) P- (I - K H)^T + K R K^T. Q is a continuous-time power spectral density, so the
-discrete process noise is Q dt.
+EKF: x- = f_d(x), P- = F P F^T + Q_d; update with the Joseph form
+P+ = (I - K H) P- (I - K H)^T + K R K^T.
+
+Process noise Q_d over one step [t, t + dt]:
+- a model without ``noise()``: additive, Q is the n x n power spectral density of the state
+  noise and Q_d = Q dt;
+- a model with noises w (``noise()``, entering f non-additively): Q is the nw x nw power
+  spectral density of w and Q_d = G Q G^T dt with G = df/dw evaluated at the start of the step
+  (t, x, u, p, w = 0); the mean is propagated with w = 0. This is the first-order (rectangle)
+  discretisation of the continuous noise input; Van Loan's exact form differs by O(dt^2).
 
 UKF (paper 004, eqs (1)-(3), Julier & Uhlmann): 2n+1 sigma points x, x +/- columns of
 chol((n + kappa) P), weights W_0 = kappa/(n + kappa), W_i = 1/(2(n + kappa)); the update redraws
@@ -22,14 +29,40 @@ from symkf.models.base import Model
 from .. import linalg
 from ..kernels import (ModelFunctions, Symbols, compose_step, innovation, keep_on_failure, make_kernel,
                        masked_noise, register_family, update_outputs)
-from ..spec import STATUS_DOMAIN, STATUS_NOT_PD, Kernel
+from ..spec import STATUS_DOMAIN, STATUS_NOT_PD, Arg, Kernel
+
+
+# ---------------------------------------------------------------------- process noise
+def noise_symbols(model: Model) -> tuple[dict, dict]:
+    """The Q argument of the predict kernels: {} (the n x n additive Q of Symbols) for a model
+    without noises, else an nw x nw Q, the power spectral density of the noises w."""
+    if not model.noises:
+        return {}, {}
+    nw = len(model.noises)
+    names = [v.name for v in model.noises]
+    units = ", ".join(f"({v.unit})^2 s" for v in model.noises)
+    return {"Q": ca.SX.sym("Q", nw, nw)}, {"Q": Arg("Q", (nw, nw), units, f"power spectral density of the "
+                                                     f"process noises w {names} (discrete: G Q G^T dt, G = df/dw)")}
+
+
+def process_noise(symbols: Symbols, fns: ModelFunctions, Q, x, t, dt):
+    """Q_d over [t, t + dt]: Q dt (additive), or G Q G^T dt with G = df/dw at (t, x) (noise())."""
+    if fns.noise_gain is None:
+        return Q * dt
+    G = fns.noise_gain(t, x, symbols.sym["u"], symbols.sym["p"])
+    return G @ Q @ G.T * dt
+
+
+def _predict_doc(model: Model, name: str, detail: str) -> str:
+    noise = "G Q G^T dt, G = df/dw at the step start" if model.noises else "Q dt"
+    return f"{name} prediction from t to t + dt ({detail}; process noise {noise})."
 
 
 # ---------------------------------------------------------------------- EKF
-def ekf_predict_expr(symbols: Symbols, fns: ModelFunctions, x, P, t, dt):
+def ekf_predict_expr(symbols: Symbols, fns: ModelFunctions, x, P, t, dt, Q):
     s = symbols.sym
     x_next, F = fns.fd_and_jac(t, dt, x, s["u"], s["p"])
-    return x_next, linalg.symmetrize(F @ P @ F.T + s["Q"] * dt)
+    return x_next, linalg.symmetrize(F @ P @ F.T + process_noise(symbols, fns, Q, x, t, dt))
 
 
 def ekf_update_expr(symbols: Symbols, fns: ModelFunctions, name: str, msym: dict, wrap, x, P, t):
@@ -51,9 +84,10 @@ def ekf_update_expr(symbols: Symbols, fns: ModelFunctions, name: str, msym: dict
 
 def ekf_kernels(model: Model, symbols: Symbols, fns: ModelFunctions) -> list[Kernel]:
     s = symbols.sym
-    x_pred, P_pred = ekf_predict_expr(symbols, fns, s["x"], s["P"], s["t"], s["dt"])
-    kernels = [make_kernel("ekf_predict", "EKF prediction from t to t + dt (P = F P F^T + Q dt).",
-                       symbols, {}, {}, ["t", "dt", "x", "P", "u", "p", "Q"],
+    qsym, qarg = noise_symbols(model)
+    x_pred, P_pred = ekf_predict_expr(symbols, fns, s["x"], s["P"], s["t"], s["dt"], qsym.get("Q", s["Q"]))
+    kernels = [make_kernel("ekf_predict", _predict_doc(model, "EKF", "P = F P F^T + Q_d"),
+                       symbols, qsym, qarg, ["t", "dt", "x", "P", "u", "p", "Q"],
                        [("x", x_pred), ("P", P_pred), ("status", ca.SX(0))])]
     for name, meas in model.measurements.items():
         msym, marg = symbols.measurement(name)
@@ -91,13 +125,13 @@ def _angle_difference(a: ca.SX, b: ca.SX, wrap: tuple[bool, ...]) -> ca.SX:
     return ca.vertcat(*[linalg.wrap_angle(a[i] - b[i]) if wrap[i] else a[i] - b[i] for i in range(a.shape[0])])
 
 
-def ukf_predict_expr(symbols: Symbols, fns: ModelFunctions, x, P, t, dt):
+def ukf_predict_expr(symbols: Symbols, fns: ModelFunctions, x, P, t, dt, Q):
     s = symbols.sym
     points, weights, ok = sigma_points(x, P, s["kappa"])
     propagated = [fns.fd_inline(t, dt, pt, s["u"], s["p"]) for pt in points]
     x_pred = _weighted_mean(propagated, weights)
     P_pred = sum((w * (pt - x_pred) @ (pt - x_pred).T for w, pt in zip(weights, propagated)),
-                 ca.SX.zeros(P.shape)) + s["Q"] * dt
+                 ca.SX.zeros(P.shape)) + process_noise(symbols, fns, Q, x, t, dt)
     return x_pred, linalg.symmetrize(P_pred), ok
 
 
@@ -123,11 +157,12 @@ def ukf_update_expr(symbols: Symbols, fns: ModelFunctions, name: str, msym: dict
 
 def ukf_kernels(model: Model, symbols: Symbols, fns: ModelFunctions) -> list[Kernel]:
     s = symbols.sym
-    x_pred, P_pred, ok_pred = ukf_predict_expr(symbols, fns, s["x"], s["P"], s["t"], s["dt"])
+    qsym, qarg = noise_symbols(model)
+    x_pred, P_pred, ok_pred = ukf_predict_expr(symbols, fns, s["x"], s["P"], s["t"], s["dt"], qsym.get("Q", s["Q"]))
     x_out, P_out, status = keep_on_failure(ok_pred, [x_pred, P_pred], [s["x"], s["P"]], STATUS_NOT_PD)
     status = linalg.select(s["kappa"] + model.nx > 0, status, STATUS_DOMAIN)
-    kernels = [make_kernel("ukf_predict", "UKF prediction from t to t + dt (2n+1 sigma points, eq (1)-(3)).",
-                       symbols, {}, {}, ["t", "dt", "x", "P", "u", "p", "Q", "kappa"],
+    kernels = [make_kernel("ukf_predict", _predict_doc(model, "UKF", "2n+1 sigma points, eq (1)-(3)"),
+                       symbols, qsym, qarg, ["t", "dt", "x", "P", "u", "p", "Q", "kappa"],
                        [("x", x_out), ("P", P_out), ("status", status)])]
     for name, meas in model.measurements.items():
         msym, marg = symbols.measurement(name)
