@@ -7,8 +7,8 @@ a file path, a module name, a module or a Model).
 """
 from .build import (BuildError, BuildResult, CompilerNotFound, build_model, build_root, compiler,
                     content_hash, export_bundle, generate, generated_hash, make_config)
-from .spec import STATUS_CODES, Arg, Bundle, CodegenConfig, Kernel
+from .spec import STATUS_CODES, Arg, Bundle, CodegenConfig, Family, FilterSpec, Kernel
 
-__all__ = ["Arg", "Bundle", "BuildError", "BuildResult", "CodegenConfig", "CompilerNotFound", "Kernel",
-           "STATUS_CODES", "build_model", "build_root", "compiler", "content_hash", "export_bundle", "generate",
+__all__ = ["Arg", "Bundle", "BuildError", "BuildResult", "CodegenConfig", "CompilerNotFound", "Family", "FilterSpec",
+           "Kernel", "STATUS_CODES", "build_model", "build_root", "compiler", "content_hash", "export_bundle", "generate",
            "generated_hash", "make_config"]

@@ -224,13 +224,15 @@ def generate(model, config: CodegenConfig | None = None) -> Bundle:
     model = get_model(model)
     config = config or default_config(model)
     symbols, functions = Symbols(model), ModelFunctions(model, config)
-    kernels = model_kernels(model, symbols, functions)
+    kernels, filters = model_kernels(model, symbols, functions), []
     for family in model.filters:
         if family not in FAMILIES:
             raise BuildError(f"model '{model.name}' asks for filter family '{family}'; known: {sorted(FAMILIES)}")
-        kernels += FAMILIES[family](model, symbols, functions)
+        generated = FAMILIES[family](model, symbols, functions)
+        kernels += generated.kernels
+        filters += generated.filters
     _check_c_names(model.name, kernels)
-    return Bundle(model.name, kernels, config, model.describe())
+    return Bundle(model.name, kernels, config, model.describe(), filters)
 
 
 def _check_c_names(model: str, kernels) -> None:
@@ -361,7 +363,8 @@ def write_bundle(bundle: Bundle, directory: Path, key: str, generated: str, cc: 
                 "compiler": cc, "compiler_identity": compiler_identity(cc), "flags": c_writer.STRICT_FLAGS,
                 "optimization": bundle.config.optimization, "config": asdict(bundle.config),
                 "description": bundle.description, "library": f"lib{name}.so",
-                "kernels": [k.as_dict() for k in bundle.kernels]}
+                "kernels": [k.as_dict() for k in bundle.kernels],
+                "filters": [f.as_dict() for f in bundle.filters]}
     (directory / "manifest.json").write_text(json.dumps(manifest, indent=1))
 
 

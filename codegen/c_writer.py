@@ -6,7 +6,8 @@ own calling convention) and, for each kernel, our wrappers:
 - ``int <model>_<kernel>(inputs..., outputs...)``: typed pointers; work space on the stack
   (sizes fixed at generation time); results go to stack temporaries and are copied to the
   outputs only on success, so outputs may alias inputs (in-place x, P) and are untouched on
-  failure; returns 0 or a SYMKF_ERR_* code.
+  failure; returns 0 or a SYMKF_ERR_* code. SYMKF_GATED (an update refused by its chi-square
+  gate) is not a failure: the outputs are written (x, P as before the update) and the code returned.
 - ``int <model>_<kernel>_v(casadi_real *const *args)``: the same with one pointer array (what
   the Python runtime binds once and calls with a single argument).
 - ``int <model>_<kernel>_run(n_steps, ...)`` for filter-step kernels: the whole time loop in C.
@@ -85,12 +86,12 @@ def _wrapper(model: str, kernel: Kernel) -> str:
     lines += [f"  res[{i}] = tmp{i};" for i in range(len(kernel.outputs) - 1)]
     lines.append(f"  res[{len(kernel.outputs) - 1}] = &status;")
     lines.append(f"  if ({raw_name(model, kernel)}(arg, res, iw, w, 0)) return SYMKF_ERR_EVAL;")
-    lines.append("  if (status != 0) return (int) status;")
+    lines.append("  if (status != 0 && status != SYMKF_GATED) return (int) status;   /* gated: written, reported */")
     for i, a in enumerate(kernel.outputs[:-1]):
         lines.append(f"  for (i = 0; i < {a.size}; ++i) if (!isfinite(tmp{i}[i])) return SYMKF_ERR_NONFINITE;")
     for i, a in enumerate(kernel.outputs[:-1]):
         lines.append(f"  for (i = 0; i < {a.size}; ++i) {a.name}_out[i] = tmp{i}[i];")
-    lines += ["  (void)i;", "  return SYMKF_OK;", "}", ""]
+    lines += ["  (void)i;", "  return (int) status;", "}", ""]
     n_args = len(params)
     lines += [f"int {model}_{kernel.name}_v(casadi_real *const *args) {{",
               f"  return {model}_{kernel.name}(" + ", ".join(f"args[{i}]" for i in range(n_args)) + ");",
@@ -136,7 +137,7 @@ def _run_loop(model: str, kernel: Kernel) -> str:
         call_args.append(a.name if a.name in kernel.carried else f"{a.name}_scratch")
     lines.append(f"    code = {model}_{kernel.name}({', '.join(call_args)});")
     lines.append("    status_hist[k] = code;")
-    lines.append("    if (code != SYMKF_OK && first_error == SYMKF_OK) first_error = code;")
+    lines.append("    if (code != SYMKF_OK && code != SYMKF_GATED && first_error == SYMKF_OK) first_error = code;")
     for name in kernel.carried:
         size = outputs[name].size
         lines.append(f"    for (i = 0; i < {size}; ++i) {name}_hist[(long) k * {size} + i] = {name}[i];")
@@ -200,7 +201,8 @@ def header(bundle: Bundle, content_hash: str) -> str:
         prefix = f"{model.upper()}_{kernel.name.upper()}"
         lines += ["/**", f" * {model}_{kernel.name}: {kernel.doc}"]
         lines += _doc_args(kernel)
-        lines += [f" * Returns SYMKF_OK or a SYMKF_ERR_* code. Stack work space: {work} bytes "
+        lines += [f" * Returns SYMKF_OK, SYMKF_GATED (outputs written, update skipped) or a SYMKF_ERR_* code. "
+                  f"Stack work space: {work} bytes "
                   f"(+ outputs). {f.n_instructions()} instructions.", " */",
                   f"#define {prefix}_WORK_BYTES {work}",
                   f"int {model}_{kernel.name}({', '.join(p for p, _ in _param_list(kernel))});",
@@ -212,7 +214,7 @@ def header(bundle: Bundle, content_hash: str) -> str:
                       " *   n_steps blocks). Inputs named per-step (" + ", ".join(kernel.per_step) + ") hold",
                       " *   n_steps consecutive blocks; the others are constant. A failed step keeps the",
                       " *   state, records its code in status_hist[k] and the loop goes on.",
-                      " * Returns the first non-zero step code, or SYMKF_OK.", " */",
+                      " * Returns the first SYMKF_ERR_* step code, or SYMKF_OK.", " */",
                       f"int {model}_{kernel.name}_run({', '.join(_run_params(kernel))});", ""]
     lines += ["#ifdef __cplusplus", "}", "#endif", f"#endif /* {guard} */", ""]
     return "\n".join(lines)

@@ -23,7 +23,7 @@ import casadi as ca
 from symkf.models.base import Model
 from . import linalg
 from .discretize import FUNCTION_OPTIONS, continuous_dynamics, discrete_dynamics, measurement_function
-from .spec import STATUS_NOT_PD, Arg, CodegenConfig, Kernel
+from .spec import STATUS_GATED, STATUS_NONFINITE, STATUS_NOT_PD, Arg, CodegenConfig, Family, FilterSpec, Kernel
 
 
 class Symbols:
@@ -56,13 +56,15 @@ class Symbols:
         meas = self.model.measurements[name]
         m, units = meas.size, ", ".join(v.unit for v in meas.outputs)
         sym = {"q": ca.SX.sym("q", meas.q.shape[0]), "z": ca.SX.sym("z", m),
-               "mask": ca.SX.sym("mask", m), "R": ca.SX.sym("R", m, m)}
+               "mask": ca.SX.sym("mask", m), "R": ca.SX.sym("R", m, m), "gate": ca.SX.sym("gate", m)}
         args = {
             "q": Arg("q", (meas.q.shape[0], 1), ", ".join(v.unit for v in meas.params) or "-",
                      f"parameters of measurement '{name}' " + str([v.name for v in meas.params])),
             "z": Arg("z", (m, 1), units, f"measurement '{name}' " + str([v.name for v in meas.outputs])),
             "mask": Arg("mask", (m, 1), "-", "availability per component: 1 use, 0 ignore"),
             "R": Arg("R", (m, m), "measurement units squared", "measurement noise covariance"),
+            "gate": Arg("gate", (m, 1), "-", "chi-square gate: gate[k-1] bounds y^T S^-1 y when k components "
+                        "are used; 0 = no gate"),
             "y": Arg("y", (m, 1), units, "innovation z - h(x) (angles wrapped, masked entries 0)"),
             "S": Arg("S", (m, m), "measurement units squared", "innovation covariance"),
         }
@@ -189,8 +191,25 @@ def keep_on_failure(ok: ca.SX, new: list[ca.SX], old: list[ca.SX], failure_code:
     return kept + [linalg.select(ok, 0, failure_code)]
 
 
+def gated(gate: ca.SX, mask: ca.SX, nis: ca.SX) -> ca.SX:
+    """1 if the normalised innovation squared ``nis`` = y^T S^-1 y exceeds the gate for the number
+    k of used components (``gate[k-1]``; a gate <= 0 is off), else 0."""
+    used = ca.sum1(mask)
+    threshold = sum((ca.if_else(used == i + 1, gate[i], 0) for i in range(gate.shape[0])), 0)
+    return (threshold > 0) * (nis > threshold)
+
+
+def all_finite(values: list[ca.SX]) -> ca.SX:
+    """1 if every entry of every value is finite (NaN != NaN; |Inf| is not < Inf), else 0."""
+    flag = ca.SX(1)
+    for value in values:
+        for i in range(value.numel()):
+            flag = flag * (value[i] == value[i]) * (ca.fabs(value[i]) < ca.inf)
+    return flag
+
+
 #: Argument order of every generated filter function (a kernel uses the subset it needs).
-CANONICAL_ORDER = ("t", "dt", "x", "P", "u", "p", "Q", "q", "z", "mask", "R", "kappa")
+CANONICAL_ORDER = ("t", "dt", "x", "P", "u", "p", "Q", "q", "z", "mask", "R", "gate", "kappa")
 
 
 def compose_step(name: str, predict: Kernel, update: Kernel) -> Kernel:
@@ -224,13 +243,43 @@ def compose_step(name: str, predict: Kernel, update: Kernel) -> Kernel:
                   per_step=tuple(a.name for a in inputs if a.name in ("t", "dt", "u", "q", "z", "mask")))
 
 
-def update_outputs(update, x_old, P_old):
-    x_new, P_new, y, S, ok = update
-    x_out, P_out, status = keep_on_failure(ok, [x_new, P_new], [x_old, P_old], STATUS_NOT_PD)
-    return [("x", x_out), ("P", P_out), ("y", y), ("S", S), ("status", status)]
+def update_status(ok: ca.SX, is_gated: ca.SX, inputs_finite: ca.SX) -> ca.SX:
+    """NONFINITE if an input is NaN/Inf, else NOT_PD if a factorisation failed, else GATED or 0."""
+    status = linalg.select(is_gated, STATUS_GATED, 0)
+    status = linalg.select(ok, status, STATUS_NOT_PD)
+    return linalg.select(inputs_finite, status, STATUS_NONFINITE)
 
 
-FamilyBuilder = Callable[[Model, Symbols, ModelFunctions], list[Kernel]]
+def update_outputs(update, x_old, P_old, gate, mask, inputs_finite):
+    """x, P (unchanged unless the update succeeded and passed the gate), y, S, status."""
+    x_new, P_new, y, S, ok, nis = update
+    is_gated = gated(gate, mask, nis)
+    keep = ok * (1 - is_gated) * inputs_finite
+    x_out, P_out = (linalg.select(keep, new, old) for new, old in ((x_new, x_old), (P_new, P_old)))
+    return [("x", x_out), ("P", P_out), ("y", y), ("S", S), ("status", update_status(ok, is_gated, inputs_finite))]
+
+
+def masked_finite(z: ca.SX, mask: ca.SX) -> ca.SX:
+    """1 if every used component of z is finite (masked components may be NaN)."""
+    flag = ca.SX(1)
+    for i in range(z.shape[0]):
+        flag = flag * ((mask[i] < 0.5) + (mask[i] >= 0.5) * (z[i] == z[i]) * (ca.fabs(z[i]) < ca.inf))
+    return flag
+
+
+def filter_spec(name: str, algorithm: str, kernels: list[Kernel], measurements, **fields) -> FilterSpec:
+    """The spec of filter ``name`` whose kernels follow the naming rule ``<name>_predict``,
+    ``<name>_update_<measurement>``, ``<name>_step_<measurement>`` (those present in ``kernels``)."""
+    names = {k.name for k in kernels}
+    predict = f"{name}_predict" if f"{name}_predict" in names else ""
+    update = {m: f"{name}_update_{m}" for m in measurements if f"{name}_update_{m}" in names}
+    step = {m: f"{name}_step_{m}" for m in measurements if f"{name}_step_{m}" in names}
+    if not step:
+        raise ValueError(f"filter '{name}': no kernel named {name}_step_<measurement> among {sorted(names)}")
+    return FilterSpec(name, algorithm, predict, update, step, **fields)
+
+
+FamilyBuilder = Callable[[Model, Symbols, ModelFunctions], "Family"]
 
 #: Filter families a model can ask for by name in ``Model.filters``. Each lives in
 #: ``codegen/families/<algorithm>.py`` and calls :func:`register_family` when imported;

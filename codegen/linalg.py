@@ -66,3 +66,21 @@ def wrap_angle(a: ca.SX) -> ca.SX:
 def select(flag: ca.SX, if_true: ca.SX, if_false: ca.SX) -> ca.SX:
     """Element-wise if_else that never lets NaN in the unselected branch leak through."""
     return ca.if_else(flag, if_true, if_false)
+
+
+#: Relative tolerance of :func:`psd_flag` (on the correlation matrix).
+PSD_TOLERANCE = 1e-9
+
+
+def psd_flag(A: ca.SX) -> ca.SX:
+    """0/1 flag that the symmetric A is positive semi-definite: no negative (or NaN) variance and
+    a Cholesky factorisation of its correlation matrix D^-1/2 A D^-1/2 + tol I succeeds."""
+    n = A.shape[0]
+    diag_ok = ca.SX(1)
+    scale = []
+    for i in range(n):
+        diag_ok = diag_ok * (A[i, i] >= 0) * (A[i, i] < ca.inf)
+        scale.append(1 / ca.sqrt(ca.fmax(A[i, i], TINY)))
+    D = ca.diag(ca.vertcat(*scale))
+    _, ok = cholesky(D @ A @ D + PSD_TOLERANCE * ca.SX.eye(n))
+    return diag_ok * ok

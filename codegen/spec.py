@@ -18,8 +18,9 @@ STATUS_CODES = {
     3: ("SYMKF_ERR_NONFINITE", "an input or result is NaN or infinite"),
     4: ("SYMKF_ERR_DOMAIN", "an argument is outside the domain of the equations (e.g. |dp| >= 1 or n + kappa <= 0)"),
     5: ("SYMKF_ERR_ARGS", "a bad argument (e.g. a negative step count)"),
+    6: ("SYMKF_GATED", "the innovation failed the chi-square gate (y^T S^-1 y > gate); the update was skipped"),
 }
-STATUS_OK, STATUS_EVAL, STATUS_NOT_PD, STATUS_NONFINITE, STATUS_DOMAIN, STATUS_ARGS = range(6)
+STATUS_OK, STATUS_EVAL, STATUS_NOT_PD, STATUS_NONFINITE, STATUS_DOMAIN, STATUS_ARGS, STATUS_GATED = range(7)
 
 
 @dataclass(frozen=True)
@@ -119,14 +120,77 @@ class CodegenConfig:
         return dict(self.extra).get(key, default)
 
 
+@dataclass(frozen=True)
+class FilterSpec:
+    """Which kernels make up one filter, so the runtime can build it without knowing the family.
+
+    Attributes:
+        name: the filter's name within the model ("ekf", "ukf", "cd_ekf", "mekf", "gd_simple_marg"...).
+        algorithm: the algorithm, which names its NumPy reference ("ekf", "ukf", "cd_ekf", "mekf",
+            "qukf", "aukf", "gd_simple", "gd_full").
+        predict: the prediction kernel ("" if the filter has none: it only steps).
+        update, step: {measurement: kernel}; ``step`` = predict then update in one call; a step
+            kernel is also the one the C run loop iterates (``Kernel.carried``).
+        state: outputs carried from step to step (``("x", "P")`` or ``("x",)``).
+        diagnostics: per-measurement outputs a user inspects after an update (``("y", "S")``).
+        measurement_inputs: per-measurement inputs (``q``, ``z``, ``mask``, ``R``, ``gate``, or a
+            MARG filter's ``acc``, ``mag``); every other input is shared by all kernels.
+        defaults: default values of scalar inputs (e.g. ``{"kappa": 0.0}``).
+    """
+
+    name: str
+    algorithm: str
+    predict: str
+    update: dict[str, str]
+    step: dict[str, str]
+    state: tuple[str, ...] = ("x", "P")
+    diagnostics: tuple[str, ...] = ("y", "S")
+    measurement_inputs: tuple[str, ...] = ("q", "z", "mask", "R", "gate")
+    defaults: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def measurements(self) -> tuple[str, ...]:
+        return tuple(self.step)
+
+    def kernel_names(self) -> list[str]:
+        return ([self.predict] if self.predict else []) + list(self.update.values()) + list(self.step.values())
+
+    def as_dict(self) -> dict:
+        return {"name": self.name, "algorithm": self.algorithm, "predict": self.predict,
+                "update": dict(self.update), "step": dict(self.step), "state": list(self.state),
+                "diagnostics": list(self.diagnostics), "measurement_inputs": list(self.measurement_inputs),
+                "defaults": dict(self.defaults)}
+
+    @classmethod
+    def from_dict(cls, entry: dict) -> "FilterSpec":
+        return cls(entry["name"], entry["algorithm"], entry["predict"], dict(entry["update"]),
+                   dict(entry["step"]), tuple(entry["state"]), tuple(entry["diagnostics"]),
+                   tuple(entry["measurement_inputs"]), dict(entry["defaults"]))
+
+
+@dataclass
+class Family:
+    """What a filter family generates for a model: its kernels and the filters they make up."""
+
+    kernels: list[Kernel]
+    filters: list[FilterSpec] = field(default_factory=list)
+
+
 @dataclass
 class Bundle:
-    """Everything generated for one model: the kernels plus what describes them."""
+    """Everything generated for one model: the kernels, the filters they make up, and a description."""
 
     model_name: str
     kernels: list[Kernel]
     config: CodegenConfig
     description: dict = field(default_factory=dict)
+    filters: list[FilterSpec] = field(default_factory=list)
+
+    def filter(self, name: str) -> FilterSpec:
+        for spec in self.filters:
+            if spec.name == name:
+                return spec
+        raise KeyError(f"model '{self.model_name}' has no filter '{name}'; it has {[f.name for f in self.filters]}")
 
     def kernel(self, name: str) -> Kernel:
         for k in self.kernels:

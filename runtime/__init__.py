@@ -13,34 +13,35 @@ Functions in CasADi's virtual machine (``backend.kind == "casadi-vm"``).
 """
 from __future__ import annotations
 
-from symkf.codegen import CompilerNotFound, build_model, generate, make_config
+from symkf.codegen import CompilerNotFound, FilterSpec, build_model, generate, make_config
 from symkf.models import get_model
 from .backends import CompiledBackend, StaleLibraryError, SymkfError, VirtualMachineBackend
-from .filters import KalmanFilter, RunResult
+from .filters import Filter, KalmanFilter, RunResult
 
-__all__ = ["CompiledModel", "KalmanFilter", "RunResult", "StaleLibraryError", "SymkfError", "load"]
+__all__ = ["CompiledModel", "Filter", "KalmanFilter", "RunResult", "StaleLibraryError", "SymkfError", "load"]
 
 
 class CompiledModel:
-    """A model's kernels, callable from Python, plus factories for its filters."""
+    """A model's kernels, callable from Python, plus its filters (from the manifest's specs)."""
 
-    def __init__(self, name: str, backend, description: dict):
+    def __init__(self, name: str, backend, description: dict, filters: list[FilterSpec]):
         self.name = name
         self.backend = backend
         self.model = description
+        self.filters = {spec.name: spec for spec in filters}
 
-    def filter(self, family: str, x0, P0, Q, **options) -> KalmanFilter:
-        if f"{family}_predict" not in self.backend.kernels:
-            raise ValueError(f"model '{self.name}' has no '{family}' filter; it was generated with "
-                             f"{sorted({k.split('_')[0] for k in self.backend.kernels})}")
-        return KalmanFilter(self, family, x0, P0, Q, **options)
+    def filter(self, name: str, x0, P0=None, Q=None, **options) -> Filter:
+        """The generated filter ``name`` (see ``self.filters``); options as :class:`Filter`."""
+        if name not in self.filters:
+            raise ValueError(f"model '{self.name}' has no '{name}' filter; it has {sorted(self.filters)}")
+        return Filter(self, name, x0, P0, Q, **options)
 
-    def ekf(self, x0, P0, Q, **options) -> KalmanFilter:
-        """Extended Kalman filter (Joseph-form update). Options: R, p."""
+    def ekf(self, x0, P0, Q, **options) -> Filter:
+        """Extended Kalman filter (Joseph-form update). Options: R, p, gate."""
         return self.filter("ekf", x0, P0, Q, **options)
 
-    def ukf(self, x0, P0, Q, kappa: float = 0.0, **options) -> KalmanFilter:
-        """Unscented Kalman filter, Julier sigma points with ``kappa``. Options: R, p."""
+    def ukf(self, x0, P0, Q, kappa: float = 0.0, **options) -> Filter:
+        """Unscented Kalman filter, Julier sigma points with ``kappa``. Options: R, p, gate."""
         return self.filter("ukf", x0, P0, Q, kappa=kappa, **options)
 
 
@@ -59,10 +60,11 @@ def load(model, backend: str = "auto", **overrides) -> CompiledModel:
                 raise
             return _vm_model(model, reason=str(exc), **overrides)
         compiled = CompiledBackend.from_directory(result.directory)
-        return CompiledModel(model.name, compiled, compiled.manifest["description"])
+        return CompiledModel(model.name, compiled, compiled.manifest["description"],
+                             [FilterSpec.from_dict(f) for f in compiled.manifest["filters"]])
     return _vm_model(model, reason="", **overrides)
 
 
 def _vm_model(model, reason: str, **overrides) -> CompiledModel:
     bundle = generate(model, make_config(model, **overrides))
-    return CompiledModel(model.name, VirtualMachineBackend(bundle, reason), bundle.description)
+    return CompiledModel(model.name, VirtualMachineBackend(bundle, reason), bundle.description, bundle.filters)

@@ -19,19 +19,19 @@ are normalised. A failed step raises SymkfError and leaves x and P unchanged.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
 from symkf.codegen.families import quaternion_filters as family
 from symkf.codegen.spec import STATUS_DOMAIN, STATUS_NONFINITE, STATUS_NOT_PD
 from symkf.models import attitude as model
+from . import contract
 from .backends import SymkfError
-from .filters import as_array, covariance, read_only
+from .contract import as_array, covariance, read_only
+from .filters import Filter, RunResult
 
 KINDS = ("mekf", "ukf", "aukf")
 #: UKF scaling κ used unless given: keeps every weight positive (paper 000 leaves κ open).
-DEFAULT_KAPPA = 1.0
+DEFAULT_KAPPA = family.DEFAULT_KAPPA
 #: Largest accepted deviation of an initial quaternion's norm from 1 (smaller ones are normalised).
 NORM_TOLERANCE = family.MEASUREMENT_NORM_TOLERANCE
 
@@ -61,21 +61,10 @@ def _measurement(q_s) -> np.ndarray:
     return z
 
 
-@dataclass
-class AttitudeRun:
-    """A whole run: x (N, 7), P (N, 6, 6) after every step and each step's status code."""
 
-    x: np.ndarray
-    P: np.ndarray
-    status: np.ndarray
-
-    @property
-    def failed_steps(self) -> np.ndarray:
-        return np.flatnonzero(self.status)
-
-
-class AttitudeFilter:
-    """MEKF, the paper's UKF or the augmented UKF of a compiled ``attitude`` model.
+class AttitudeFilter(Filter):
+    """MEKF, the paper's UKF or the augmented UKF of a compiled ``attitude`` model (a thin
+    :class:`~symkf.runtime.filters.Filter`: the paper's argument names over the generic one).
 
     Args:
         compiled: ``symkf.runtime.load("attitude")``.
@@ -87,115 +76,60 @@ class AttitudeFilter:
     Attributes (read-only views): x, q, b, P; y and S of the last update (innovation δp_s, P^yy).
     """
 
+    MEASUREMENT = "star_tracker"
+
     def __init__(self, compiled, kind: str, q0, b0, P0, Q=None, R=None, kappa: float = DEFAULT_KAPPA):
         if kind not in KINDS:
             raise ValueError(f"kind: expected one of {KINDS}, got {kind!r}")
         x, P = _initial_state(q0, b0, P0)
-        Q = model.process_noise_psd() if Q is None else as_array("Q", Q, (6, 6))
-        R = model.star_tracker_covariance() if R is None else as_array("R", R, (3, 3))
+        Q = model.process_noise_psd() if Q is None else Q
+        R = {self.MEASUREMENT: model.star_tracker_covariance() if R is None else R}
+        options = {} if kind == "mekf" else {"kappa": kappa}
+        super().__init__(compiled, kind, x, P, Q, R=R, **options)
         self.kind = kind
-        self._buffers = {
-            "t": np.zeros(1), "dt": np.zeros(1), "x": x.copy(), "P": np.asfortranarray(P.copy()),
-            "u": np.zeros(3), "Q": np.asfortranarray(Q, dtype=float), "kappa": np.array([float(kappa)]),
-            "z": np.array([0.0, 0, 0, 1]), "mask": np.ones(1), "R": np.asfortranarray(R, dtype=float),
-            "y": np.zeros(3), "S": np.zeros((3, 3), order="F")}
-        self.t = 0.0
-        backend = compiled.backend
-        self._backend = backend
-        self._step_kernel = f"{kind}_step_star_tracker"
-        self._step = backend.bind(self._step_kernel, self._buffers)
-        self._predict = backend.bind(f"{kind}_predict", self._buffers)
-        self._update = backend.bind(f"{kind}_update_star_tracker", self._buffers) if kind != "aukf" else None
 
-    # ------------------------------------------------------------------ views
-    def _view(self, name: str) -> np.ndarray:
-        return read_only(self._buffers[name])
-
-    x = property(lambda self: self._view("x"), doc="State [q; b].")
-    P = property(lambda self: self._view("P"), doc="6x6 covariance of [δp; δb].")
-    y = property(lambda self: self._view("y"), doc="Innovation δp_s of the last update (eq 50).")
-    S = property(lambda self: self._view("S"), doc="Innovation covariance P^yy of the last update.")
-    q = property(lambda self: self._view("x")[0:4], doc="Attitude quaternion estimate (scalar-last).")
-    b = property(lambda self: self._view("x")[4:7], doc="Gyro bias estimate, rad/s.")
+    y = property(lambda self: read_only(self.measurements["star_tracker"]["y"]),
+                 doc="Innovation δp_s of the last update (eq 50).")
+    S = property(lambda self: read_only(self.measurements["star_tracker"]["S"]),
+                 doc="Innovation covariance P^yy of the last update.")
+    q = property(lambda self: self.x[0:4], doc="Attitude quaternion estimate (scalar-last).")
+    b = property(lambda self: self.x[4:7], doc="Gyro bias estimate, rad/s.")
 
     def body_rate(self, omega_g) -> np.ndarray:
         """Eq (53): ω̂ = ω_g + b̂."""
-        return as_array("omega_g", omega_g, (3,)) + self.b
+        return contract.finite_array("omega_g", omega_g, (3,)) + self.b
 
-    # ------------------------------------------------------------------ steps
     def predict(self, omega_g, dt: float) -> None:
         """Propagate over dt with gyro output omega_g (rad/s)."""
-        self._set_step(omega_g, dt)
-        self._check(self._predict(), "predict")
-        self.t += dt
+        super().predict(self.t, dt, u=contract.finite_array("omega_g", omega_g, (3,)))
 
-    def update(self, q_s) -> None:
+    def update(self, q_s, nan: str = "raise") -> int:
         """Star-tracker update with quaternion q_s (MEKF and separated UKF)."""
-        if self._update is None:
+        if not self.spec.update:
             raise ValueError("update: the augmented UKF updates only inside step(omega_g, dt, q_s)")
-        self._buffers["z"][:] = _measurement(q_s)
-        self._buffers["mask"][0] = 1.0
-        self._buffers["t"][0] = self.t
-        self._check(self._update(), "update")
+        return super().update(q_s, nan=nan)
 
-    def step(self, omega_g, dt: float, q_s=None) -> None:
+    def step(self, omega_g, dt: float, q_s=None, nan: str = "raise") -> int:
         """Propagate over dt, then update with q_s if it is not None — one compiled call."""
         if q_s is None:
             self.predict(omega_g, dt)
-            return
-        z = _measurement(q_s)
-        self._set_step(omega_g, dt)
-        self._buffers["mask"][0] = 1.0
-        self._buffers["z"][:] = z
-        self._check(self._step(), "step")
-        self.t += dt
+            return 0
+        omega_g = contract.finite_array("omega_g", omega_g, (3,))
+        return self._step(self.MEASUREMENT, self.t, dt, {"z": q_s, "mask": None}, omega_g, nan)
 
-    def _set_step(self, omega_g, dt: float) -> None:
-        u = as_array("omega_g", omega_g, (3,))
-        if not (np.isfinite(u).all() and np.isfinite(dt) and dt > 0):
-            raise ValueError("omega_g/dt: must be finite, dt > 0")
-        self._buffers["u"][:] = u
-        self._buffers["t"][0] = self.t
-        self._buffers["dt"][0] = dt
-
-    def _check(self, code: int, what: str) -> None:
-        if code:
-            raise SymkfError(f"attitude {self.kind} {what}", code)
-
-    # ------------------------------------------------------------------ whole runs
-    def run(self, omega_g, dt, q_s) -> AttitudeRun:
-        """All steps in one compiled call (the C run loop). Step k propagates over dt[k] with
-        omega_g[k] and updates with q_s[k] unless that row is NaN (no measurement)."""
-        omega_g = np.asarray(omega_g, dtype=float)
-        n_steps = omega_g.shape[0]
-        omega_g = as_array("omega_g", omega_g, (n_steps, 3))
-        dt = np.broadcast_to(np.asarray(dt, dtype=float), (n_steps,))
-        z = as_array("q_s", q_s, (n_steps, 4))
-        mask = np.isfinite(z).all(axis=1).astype(float)
-        per_step = {"t": self.t + np.concatenate([[0.0], np.cumsum(dt)[:-1]]), "dt": dt, "u": omega_g,
-                    "z": np.where(mask[:, None] > 0.5, z, [0.0, 0, 0, 1]), "mask": mask}
-        info = self._backend.kernels[self._step_kernel]
-        arrays = [np.ascontiguousarray(per_step[name], dtype=float) if name in info.per_step
-                  else np.asfortranarray(self._buffers[name], dtype=float) for name, _ in info.inputs]
-        x_hist, P_hist = np.zeros((n_steps, 7)), np.zeros((n_steps, 6, 6))
-        status = np.zeros(n_steps, dtype=np.intc)
-        run = self._backend.run_function(self._step_kernel)
-        if run is None:                            # CasADi-VM backend: the same kernel, step by step
-            self._run_in_python(per_step, x_hist, P_hist, status)
-        else:
-            run(n_steps, *[a.ctypes.data for a in arrays], x_hist.ctypes.data, P_hist.ctypes.data, status.ctypes.data)
-            if n_steps:
-                self._buffers["x"][:] = x_hist[-1]
-                self._buffers["P"][:] = P_hist[-1].T
-        self.t += float(np.sum(dt))
-        return AttitudeRun(x_hist, np.transpose(P_hist, (0, 2, 1)), status)
-
-    def _run_in_python(self, per_step, x_hist, P_hist, status) -> None:
-        for k in range(status.size):
-            for name in ("t", "dt", "u", "z", "mask"):
-                self._buffers[name][:] = per_step[name][k]
-            status[k] = self._step()
-            x_hist[k], P_hist[k] = self._buffers["x"], self._buffers["P"].T
+    def run(self, omega_g, dt, q_s) -> RunResult:
+        """All steps in one compiled call (the C run loop). Step k propagates over dt[k] (> 0)
+        with omega_g[k] and updates with q_s[k] unless that row has NaN (no measurement)."""
+        omega_g = np.asarray(omega_g, dtype=float) if not isinstance(omega_g, str) else omega_g
+        n_steps = omega_g.shape[0] if isinstance(omega_g, np.ndarray) and omega_g.ndim == 2 else -1
+        omega_g = contract.finite_array("omega_g", omega_g, (max(n_steps, 0), 3))
+        dt = np.broadcast_to(contract.as_array("dt", dt, np.shape(dt)), (n_steps,))
+        if not (np.isfinite(dt).all() and np.all(dt > 0)):
+            raise ValueError("dt: every step must be finite and > 0")
+        per_step = {"t": self.t + np.concatenate([[0.0], np.cumsum(dt)[:-1]]), "dt": dt}
+        per_step.update(self._run_series(self.MEASUREMENT, n_steps, {"z": q_s, "mask": None}, omega_g, "mask"))
+        result = self._run(self.MEASUREMENT, per_step, n_steps)
+        return result
 
 
 # ---------------------------------------------------------------------- NumPy reference
@@ -413,6 +347,9 @@ def attitude_filter(kind: str, q0, b0, P0, backend: str = "auto", **options) -> 
     from . import load
     return AttitudeFilter(load("attitude", backend=backend), kind, q0, b0, P0, **options)
 
+
+#: Older name of the run result.
+AttitudeRun = RunResult
 
 __all__ = ["AttitudeFilter", "AttitudeRun", "ReferenceAttitudeFilter", "attitude_filter", "eigen_mean",
            "unit_quaternion"]

@@ -1,158 +1,160 @@
-"""FilterPy-shaped filter objects over the generated kernels.
+"""One filter object for every generated filter, built from the manifest's filter spec.
 
-A filter owns numpy buffers (``x``, ``P``, ``Q``, per measurement ``z``, ``R``, ``y``, ``S``...)
-that the kernels read and write in place; ``predict``, ``update`` and ``step`` are one kernel
-call each. After an update, ``y`` (innovation) and ``S`` (its covariance) of that measurement are
-inspectable, as in FilterPy.
+A :class:`Filter` reads its :class:`~symkf.codegen.spec.FilterSpec` (which kernel predicts,
+updates and steps with each measurement, which outputs are the carried state and which are
+diagnostics, default scalars), makes one numpy buffer per argument of those kernels (shared
+arguments once, per-measurement arguments once per measurement), binds every kernel to them once,
+and exposes ``x``, ``P`` and the diagnostics ``y``/``S`` as read-only views, FilterPy-style.
+``predict``, ``update`` and ``step`` are one kernel call each; ``run`` is the whole loop in C
+(or, on the CasADi-VM backend, the same kernel called step by step).
 
-Bad input never corrupts the state: shapes are checked before any buffer is touched, and the C
-code writes x and P only on success. A failure raises :class:`SymkfError` naming the code.
+Every call enforces :mod:`symkf.runtime.contract` before it writes a buffer; the kernels write
+x and P only on success, so when anything raises, x, P and t are bit-identical to before.
+Paper-specific filters (attitude, MARG) are thin subclasses that name their arguments.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.stats import chi2
 
-from symkf.codegen.spec import STATUS_NONFINITE
+from symkf.codegen.spec import STATUS_GATED, STATUS_NONFINITE, FilterSpec
+from . import contract
 from .backends import SymkfError
+from .contract import as_array, covariance, read_only  # noqa: F401  (re-exported for older imports)
+
+#: Inputs that change every step of a run (the rest are constants of the filter).
+PER_CALL = ("t", "dt", "u", "q", "z", "mask", "acc", "mag")
 
 
-
-def _matrix(shape) -> np.ndarray:
-    return np.zeros(shape, order="F")
-
-
-def _exact_array(name: str, value, target: np.ndarray) -> np.ndarray:
-    """``value`` as float64 of exactly ``target``'s shape (fast for ndarrays; hot path)."""
-    if type(value) is np.ndarray and value.dtype is target.dtype and value.shape == target.shape:
-        return value
-    return as_array(name, value, target.shape)
-
-
-def as_array(name: str, value, shape: tuple[int, ...]) -> np.ndarray:
-    """``value`` as a float array of exactly ``shape``; ValueError names the argument otherwise."""
-    try:
-        array = np.asarray(value, dtype=float)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name}: expected numbers of shape {shape}, got {type(value).__name__}") from None
-    if array.shape != shape:
-        if array.size == int(np.prod(shape)) and array.ndim <= 1 and len(shape) == 1:
-            array = array.reshape(shape)
-        else:
-            raise ValueError(f"{name}: expected shape {shape}, got {array.shape}")
-    return array
-
-
-def read_only(array: np.ndarray) -> np.ndarray:
-    """A read-only view of a buffer the C code writes (users inspect it, never assign into it)."""
-    view = array.view()
-    view.flags.writeable = False
-    return view
-
-
-def covariance(name: str, value, n: int) -> np.ndarray:
-    """``value`` as an n x n covariance: finite, symmetric and positive definite, else ValueError."""
-    value = as_array(name, value, (n, n))
-    if not np.isfinite(value).all():
-        raise ValueError(f"{name}: contains NaN or Inf")
-    if not np.allclose(value, value.T, rtol=1e-12, atol=0):
-        raise ValueError(f"{name}: not symmetric")
-    try:
-        np.linalg.cholesky(value)
-    except np.linalg.LinAlgError:
-        raise ValueError(f"{name}: not positive definite") from None
-    return value
-
-
-@dataclass
-class MeasurementBuffers:
-    """Per-measurement buffers shared by the update and step kernels of one filter."""
-
-    q: np.ndarray
-    z: np.ndarray
-    mask: np.ndarray
-    R: np.ndarray
-    y: np.ndarray
-    S: np.ndarray
+def _buffer(shape: tuple[int, int]) -> np.ndarray:
+    """A zeroed column-major buffer: (r,) for a column vector, (r, c) for a matrix."""
+    return np.zeros(shape[0]) if shape[1] == 1 else np.zeros(shape, order="F")
 
 
 @dataclass
 class RunResult:
-    """A whole run: state and covariance after every step, and each step's status code."""
+    """A whole run: the state (and covariance) after every step and each step's status code."""
 
-    x: np.ndarray          # (n_steps, n)
-    P: np.ndarray          # (n_steps, n, n)
-    status: np.ndarray     # (n_steps,) int
+    x: np.ndarray                  # (N, n)
+    P: np.ndarray | None           # (N, n, n), None for a filter without covariance
+    status: np.ndarray             # (N,) int: 0, SYMKF_GATED or a SYMKF_ERR_* code
 
     @property
     def failed_steps(self) -> np.ndarray:
-        return np.flatnonzero(self.status)
+        """Steps that failed (state kept); gated steps are not failures."""
+        return np.flatnonzero((self.status != 0) & (self.status != STATUS_GATED))
+
+    @property
+    def gated_steps(self) -> int:
+        """Number of steps whose update the chi-square gate refused."""
+        return int(np.count_nonzero(self.status == STATUS_GATED))
+
+    @property
+    def q(self) -> np.ndarray:
+        """The attitude quaternions (first four states) of an attitude or MARG filter."""
+        return self.x[:, 0:4]
 
 
-class KalmanFilter:
-    """EKF or UKF (``family``) of one compiled model.
+class Filter:
+    """A generated filter (EKF, UKF, continuous-discrete EKF, ...) of one compiled model.
 
     Args:
         compiled: a :class:`~symkf.runtime.CompiledModel`.
-        family: "ekf" or "ukf".
-        x0, P0: initial state and covariance.
-        Q: process-noise power spectral density: n x n, additive (discrete noise Q dt), or, for a
-            model that declares noise(), nw x nw of its noises w (discrete noise G Q G^T dt,
-            G = df/dw at the step start; see codegen/families/kalman.py).
-        R: {measurement: covariance}; defaults to diag(sigma^2) from the model.
+        spec: the filter's name in the manifest (``compiled.filters``) or its FilterSpec.
+        x0, P0: initial state and covariance (P0 symmetric positive semi-definite).
+        Q: process-noise power spectral density, symmetric PSD: n x n, additive (discrete noise
+            Q dt), or, for a model that declares noise(), nw x nw of its noises w (discrete noise
+            G Q G^T dt, G = df/dw at the step start; see codegen/families/kalman.py).
+        R: {measurement: covariance} (symmetric PD); default diag(sigma^2) from the model.
         p: runtime parameters (default: the model's defaults).
-        kappa: UKF scaling (Julier); ignored by the EKF.
+        gate: {measurement: probability in (0, 1) or {"threshold": value}} chi-square gates.
+        **scalars: scalar inputs of the kernels, e.g. ``kappa`` (defaults from the spec).
     """
 
-    def __init__(self, compiled, family: str, x0, P0, Q, R: dict | None = None, p=None, kappa: float = 0.0):
+    def __init__(self, compiled, spec, x0, P0=None, Q=None, R: dict | None = None, p=None,
+                 gate: dict | None = None, **scalars):
+        self.spec: FilterSpec = compiled.filters[spec] if isinstance(spec, str) else spec
+        self.family = self.spec.name
         self.model = compiled.model
-        self.family = family
-        n = len(self.model["states"])
-        self.n = n
-        self._buffers = {"t": np.zeros(1), "dt": np.zeros(1), "x": np.zeros(n), "P": _matrix((n, n)),
-                         "u": np.zeros(len(self.model["inputs"])), "p": np.zeros(len(self.model["params"])),
-                         "Q": _matrix(dict(compiled.backend.kernels[f"{family}_predict"].inputs)["Q"]),
-                         "kappa": np.array([float(kappa)])}
-        self._buffers["p"][:] = [q["default"] for q in self.model["params"]] if p is None else \
-            as_array("p", p, (len(self.model["params"]),))
-        self.x = x0
-        self.P = P0
-        self.Q = Q
+        self._backend = compiled.backend
+        self.kernels = {name: self._backend.kernels[name] for name in self.spec.kernel_names()}
+        self._make_buffers()
+        self.n = self._buffers["x"].size
+        self._set_initial(x0, P0, Q, p, scalars)
+        self._set_noise(R)
+        for name, value in contract.known_keys("gate", gate, self.spec.measurements).items():
+            self.set_gate(name, **(value if isinstance(value, dict) else {"probability": value}))
         self.t = 0.0
-        self.measurements: dict[str, MeasurementBuffers] = {}
-        R = R or {}
-        for name, meas in self.model["measurements"].items():
-            m, nq = len(meas["outputs"]), len(meas["params"])
-            buffers = MeasurementBuffers(np.zeros(nq), np.zeros(m), np.ones(m), _matrix((m, m)),
-                                         np.zeros(m), _matrix((m, m)))
-            buffers.R[:] = as_array(f"R[{name}]", R[name], (m, m)) if name in R else np.diag(np.square(meas["sigma"]))
-            self.measurements[name] = buffers
-        self._default_measurement = next(iter(self.measurements), None)
-        self._mask_dirty = False
-        self._t_buffer, self._dt_buffer = self._buffers["t"], self._buffers["dt"]
-        self._bind(compiled)
+        self._default = self.spec.measurements[0]
+        self._bind()
 
-    # ------------------------------------------------------------------ binding
-    def _bind(self, compiled) -> None:
-        backend = compiled.backend
-        self._predict_call = backend.bind(f"{self.family}_predict", self._buffers)
-        self._update_calls, self._step_calls = {}, {}
-        for name, buffers in self.measurements.items():
-            merged = {**self._buffers, **vars(buffers)}
-            self._update_calls[name] = backend.bind(f"{self.family}_update_{name}", merged)
-            self._step_calls[name] = backend.bind(f"{self.family}_step_{name}", merged)
-        self._backend = backend
+    # ------------------------------------------------------------------ buffers
+    def _make_buffers(self) -> None:
+        """One buffer per argument name; per-measurement ones once per measurement."""
+        self._buffers: dict[str, np.ndarray] = {}
+        self.measurements: dict[str, dict[str, np.ndarray]] = {m: {} for m in self.spec.measurements}
+        per_measurement = set(self.spec.measurement_inputs) | set(self.spec.diagnostics)
+        for kernel, measurement in self._kernel_roles():
+            info = self.kernels[kernel]
+            for name, shape in info.inputs + info.outputs[:-1]:
+                if measurement is not None and name in per_measurement:
+                    self.measurements[measurement].setdefault(name, _buffer(shape))
+                else:
+                    self._buffers.setdefault(name, _buffer(shape))
+        for buffers in self.measurements.values():
+            if "mask" in buffers:
+                buffers["mask"][:] = 1.0
+        self._mask_dirty = {m: False for m in self.spec.measurements}
+
+    def _kernel_roles(self) -> list[tuple[str, str | None]]:
+        # a prediction that reads a measurement input (the augmented UKF's R) reads the first one's
+        roles = [(self.spec.predict, self.spec.measurements[0])] if self.spec.predict else []
+        roles += [(k, m) for m, k in self.spec.update.items()]
+        return roles + [(k, m) for m, k in self.spec.step.items()]
+
+    def _set_initial(self, x0, P0, Q, p, scalars: dict) -> None:
+        self.x = x0
+        if "P" in self._buffers:
+            self.P = P0
+        if "Q" in self._buffers:
+            self.Q = Q
+        if "p" in self._buffers:
+            self.p = [v["default"] for v in self.model["params"]] if p is None else p
+        known = {name: value for name, value in self.spec.defaults.items()}
+        known.update(contract.known_keys("options", scalars, self.spec.defaults))
+        for name, value in known.items():
+            self._buffers[name][0] = contract.real(name, value)
+
+    def _set_noise(self, R: dict | None) -> None:
+        R = contract.known_keys("R", R, self.spec.measurements)
+        for name in self.spec.measurements:
+            if "R" in self.measurements[name]:
+                self.set_R(name, R[name] if name in R else self._default_R(name))
+
+    def _default_R(self, name: str) -> np.ndarray:
+        return np.diag(np.square(self.model["measurements"][name]["sigma"]))
+
+    def _bind(self) -> None:
+        self._calls = {}
+        for kernel, measurement in self._kernel_roles():
+            buffers = self._buffers if measurement is None else {**self._buffers, **self.measurements[measurement]}
+            self._calls[kernel] = self._backend.bind(kernel, buffers)
+
+    def kernel_buffer(self, name: str, measurement: str | None = None) -> np.ndarray:
+        """The writable buffer a bound kernel reads (no checks: for benchmarks that restore the
+        state between timed kernel calls)."""
+        return self._buffers[name] if name in self._buffers else self._measurement(measurement)[name]
 
     def kernel_call(self, kind: str, measurement: str | None = None):
         """The bound compiled call behind ``predict``/``update``/``step`` (no argument checks):
         for benchmarks that time the C call alone. Returns a callable giving the status code."""
         if kind == "predict":
-            return self._predict_call
-        calls = {"update": self._update_calls, "step": self._step_calls}[kind]
-        return calls[measurement or self._default_measurement]
+            return self._calls[self.spec.predict]
+        return self._calls[getattr(self.spec, kind)[measurement or self._default]]
 
-    # ------------------------------------------------------------------ state views
+    # ------------------------------------------------------------------ state and settings
     @property
     def x(self) -> np.ndarray:
         """The state estimate (a read-only view of the buffer the C code writes)."""
@@ -160,188 +162,325 @@ class KalmanFilter:
 
     @x.setter
     def x(self, value) -> None:
-        value = as_array("x", value, (self.n,))
-        if not np.isfinite(value).all():
-            raise ValueError("x: contains NaN or Inf")
-        self._buffers["x"][:] = value
+        self._buffers["x"][:] = contract.finite_array("x", value, self._buffers["x"].shape)
 
     @property
     def P(self) -> np.ndarray:
+        """The covariance (read-only view); set it with a symmetric PSD matrix."""
         return read_only(self._buffers["P"])
 
     @P.setter
     def P(self, value) -> None:
-        self._buffers["P"][:] = covariance("P", value, self.n)
+        self._buffers["P"][:] = covariance("P", value, self._buffers["P"].shape[0])
 
     @property
     def Q(self) -> np.ndarray:
-        return self._buffers["Q"]
+        return read_only(self._buffers["Q"])
 
     @Q.setter
     def Q(self, value) -> None:
-        value = as_array("Q", value, self._buffers["Q"].shape)
-        if not np.isfinite(value).all():
-            raise ValueError("Q: contains NaN or Inf")
-        self._buffers["Q"][:] = value
+        self._buffers["Q"][:] = covariance("Q", value, self._buffers["Q"].shape[0])
 
     @property
     def p(self) -> np.ndarray:
-        return self._buffers["p"]
+        return read_only(self._buffers["p"])
+
+    @p.setter
+    def p(self, value) -> None:
+        self._buffers["p"][:] = contract.finite_array("p", value, self._buffers["p"].shape)
 
     def R(self, measurement: str | None = None) -> np.ndarray:
-        return self.measurements[measurement or self._default_measurement].R
+        return read_only(self._measurement(measurement)["R"])
+
+    def set_R(self, measurement: str, value) -> None:
+        """Measurement noise covariance (symmetric positive definite)."""
+        buffers = self._measurement(measurement)
+        buffers["R"][:] = covariance(f"R[{measurement}]", value, buffers["R"].shape[0], definite=True)
+
+    def set_gate(self, measurement: str, probability: float | None = None, threshold: float | None = None) -> None:
+        """Chi-square innovation gate: an update whose y^T S^-1 y exceeds the ``probability``
+        quantile of chi2(k) (k = used components), or ``threshold``, is skipped (state unchanged,
+        status SYMKF_GATED). Neither given: no gate (the default)."""
+        buffers = self._measurement(measurement)
+        if "gate" not in buffers:
+            raise ValueError(f"gate: filter '{self.family}' has no innovation gate")
+        gate = np.zeros_like(buffers["gate"])
+        if probability is not None and threshold is not None:
+            raise ValueError("gate: give a probability or a threshold, not both")
+        if probability is not None:
+            probability = contract.real("probability", probability)
+            if not 0 < probability < 1:
+                raise ValueError(f"probability: must be in (0, 1), got {probability}")
+            gate = chi2.ppf(probability, np.arange(1, gate.size + 1))
+        elif threshold is not None:
+            threshold = contract.real("threshold", threshold)
+            if threshold <= 0:
+                raise ValueError(f"threshold: must be > 0, got {threshold}")
+            gate[:] = threshold
+        buffers["gate"][:] = gate
 
     def y(self, measurement: str | None = None) -> np.ndarray:
         """Innovation of the last update with ``measurement``."""
-        return self.measurements[measurement or self._default_measurement].y
+        return read_only(self._measurement(measurement)["y"])
 
     def S(self, measurement: str | None = None) -> np.ndarray:
         """Innovation covariance of the last update with ``measurement``."""
-        return self.measurements[measurement or self._default_measurement].S
+        return read_only(self._measurement(measurement)["S"])
+
+    def _measurement(self, name: str | None) -> dict[str, np.ndarray]:
+        name = self._default if name is None else name
+        if name not in self.measurements:
+            raise ValueError(f"measurement: '{name}' is not one of {list(self.measurements)}")
+        return self.measurements[name]
 
     # ------------------------------------------------------------------ steps
     def predict(self, t: float, dt: float, u=None) -> None:
         """Propagate from time t to t + dt."""
-        self._t_buffer[0] = t
-        self._dt_buffer[0] = dt
-        if u is not None:
-            self._set_input(u)
-        code = self._predict_call()
-        if code:
-            self._raise(code, "predict")
+        if not self.spec.predict:
+            raise ValueError(f"predict: filter '{self.family}' only steps (it has no separate prediction)")
+        t, dt, u = contract.real("t", t), contract.time_step(dt), self._input(u)
+        self._write_time(t, dt, u)
+        self._check(self._calls[self.spec.predict](), "predict")
         self.t = t + dt
 
     def update(self, z, measurement: str | None = None, q=None, mask=None, t: float | None = None,
-               u=None, nan: str = "raise") -> None:
-        """Update with measurement z taken at time t (default: the time of the last predict).
+               u=None, nan: str = "raise") -> int:
+        """Update with measurement z taken at time t (default: the filter's time).
 
         Args:
-            q: the measurement's runtime parameters (e.g. a radar station's coordinates).
+            q: the measurement's runtime parameters (required when it has any).
             mask: 1/0 per component; 0 ignores that component.
-            nan: "raise" (a NaN/Inf component is an error) or "mask" (it is ignored).
+            nan: "raise" (a NaN/Inf component is an error) or "mask" (it is skipped).
+        Returns:
+            0, or SYMKF_GATED if the innovation gate refused the update (state unchanged).
         """
-        name = measurement or self._default_measurement
-        buffers = self._prepare_measurement(name, z, q, mask, nan)
-        self._t_buffer[0] = self.t if t is None else t
-        if u is not None:
-            self._set_input(u)
-        code = self._update_calls[name]()
-        if code:
-            self._raise(code, f"update '{name}'", buffers)
+        name = self._measurement_name(measurement, "update")
+        values = self._measurement_values(name, {"z": z, "q": q, "mask": mask}, nan)
+        t = self.t if t is None else contract.real("t", t)
+        u = self._input(u)
+        self._write_measurement(name, values)
+        self._write_time(t, None, u)
+        return self._check(self._calls[self.spec.update[name]](), f"update '{name}'", name)
 
     def step(self, t: float, dt: float, z, measurement: str | None = None, q=None, mask=None,
-             u=None, nan: str = "raise") -> None:
-        """predict(t, dt) then update(z) at t + dt — one call into the compiled code."""
-        name = measurement or self._default_measurement
-        buffers = self._prepare_measurement(name, z, q, mask, nan)
-        self._t_buffer[0] = t
-        self._dt_buffer[0] = dt
-        if u is not None:
-            self._set_input(u)
-        code = self._step_calls[name]()
-        if code:
-            self._raise(code, f"step '{name}'", buffers)
+             u=None, nan: str = "raise") -> int:
+        """predict(t, dt) then update(z) at t + dt — one call into the compiled code. Returns 0
+        or SYMKF_GATED (prediction applied, update refused by the gate)."""
+        name = self._measurement_name(measurement, "step")
+        return self._step(name, t, dt, {"z": z, "q": q, "mask": mask}, u, nan)
+
+    def _step(self, name: str, t, dt, given: dict, u, nan: str) -> int:
+        values = self._measurement_values(name, given, nan)
+        t = self.t if t is None else contract.real("t", t)
+        dt, u = contract.time_step(dt), self._input(u)
+        self._write_measurement(name, values)
+        self._write_time(t, dt, u)
+        code = self._check(self._calls[self.spec.step[name]](), f"step '{name}'", name)
         self.t = t + dt
+        return code
 
-    # ------------------------------------------------------------------ helpers
-    def _set_input(self, u) -> None:
-        self._buffers["u"][:] = as_array("u", u, self._buffers["u"].shape)
+    # ------------------------------------------------------------------ validation and writes
+    def _measurement_name(self, measurement: str | None, kind: str) -> str:
+        name = self._default if measurement is None else measurement
+        if name not in getattr(self.spec, kind):
+            raise ValueError(f"measurement: '{name}' is not one of {list(getattr(self.spec, kind))} "
+                             f"(filter '{self.family}', {kind})")
+        return name
 
-    def _prepare_measurement(self, name: str, z, q, mask, nan: str) -> MeasurementBuffers:
-        """Validate, then copy z (and q, mask) into the buffers; nothing is written on error."""
-        buffers = self.measurements.get(name)
-        if buffers is None:
-            raise ValueError(f"measurement: '{name}' is not one of {list(self.measurements)}")
-        z_array = _exact_array("z", z, buffers.z)
-        if mask is not None or nan != "raise" or self._mask_dirty:
-            new_mask = self._new_mask(buffers, z_array, mask, nan)
-        else:
-            new_mask = None
-        if q is not None:
-            buffers.q[...] = _exact_array("q", q, buffers.q)
-        buffers.z[...] = z_array
-        if new_mask is not None:
-            buffers.mask[...] = new_mask
-            self._mask_dirty = not bool(new_mask.all())
-        return buffers
+    def _input(self, u) -> np.ndarray | None:
+        if u is None or "u" not in self._buffers:
+            if u is not None:
+                raise ValueError(f"u: filter '{self.family}' has no inputs")
+            return None
+        return contract.finite_array("u", u, self._buffers["u"].shape)
 
-    def _new_mask(self, buffers: MeasurementBuffers, z: np.ndarray, mask, nan: str) -> np.ndarray:
-        new_mask = np.ones_like(buffers.mask) if mask is None else as_array("mask", mask, buffers.mask.shape)
-        if not np.isin(new_mask, (0.0, 1.0)).all():
-            raise ValueError("mask: entries must be 0 or 1")
+    def _measurement_values(self, name: str, given: dict, nan: str) -> dict[str, np.ndarray]:
+        """Validated per-call measurement inputs (z, q, mask or a family's own); writes nothing."""
+        nan = contract.nan_policy(nan) if nan != "raise" else nan
+        buffers = self.measurements[name]
+        values = {}
+        for key, value in given.items():
+            if key not in buffers:
+                if value is not None:
+                    raise ValueError(f"{key}: measurement '{name}' of filter '{self.family}' takes no {key}")
+                continue
+            if key == "mask":
+                values[key] = None if value is None else contract.mask(value, buffers[key].shape)
+            elif key == "q" and value is None and buffers[key].size:
+                params = [v["name"] for v in self.model["measurements"][name]["params"]]
+                raise ValueError(f"q: measurement '{name}' needs its parameters {params} (q=...) on every call")
+            elif value is not None or buffers[key].size:
+                values[key] = contract.exact_array(key, value, buffers[key].shape)
         if nan == "mask":
-            new_mask = new_mask * np.isfinite(z)
-        elif nan != "raise":
-            raise ValueError("nan: expected 'raise' or 'mask'")
-        return new_mask
+            values = self._mask_nonfinite(values, buffers)
+        return values
 
-    def _raise(self, code: int, what: str, buffers: MeasurementBuffers | None = None) -> None:
+    def _mask_nonfinite(self, values: dict, buffers: dict) -> dict:
+        """nan="mask": non-finite measurement components are masked (the whole measurement when
+        its mask is one number)."""
+        z = values["z"]
+        finite = np.isfinite(z)
+        mask = np.ones(buffers["mask"].shape) if values.get("mask") is None else values["mask"]
+        values["mask"] = mask * (finite if mask.shape == finite.shape else float(finite.all()))
+        values["z"] = np.where(finite, z, 0.0)
+        return values
+
+    def _write_measurement(self, name: str, values: dict) -> None:
+        buffers = self.measurements[name]
+        for key, value in values.items():
+            if key == "mask":
+                if value is not None:
+                    buffers["mask"][...] = value
+                    self._mask_dirty[name] = not bool(value.all())
+                elif self._mask_dirty[name]:
+                    buffers["mask"][...] = 1.0
+                    self._mask_dirty[name] = False
+            else:
+                buffers[key][...] = value
+
+    def _write_time(self, t: float, dt: float | None, u) -> None:
+        if "t" in self._buffers:
+            self._buffers["t"][0] = t
+        if dt is not None:
+            self._buffers["dt"][0] = dt
+        if u is not None:
+            self._buffers["u"][:] = u
+
+    def _check(self, code: int, what: str, measurement: str | None = None) -> int:
+        if code == 0 or code == STATUS_GATED:
+            return code
         detail = ""
-        if code == STATUS_NONFINITE and buffers is not None:
-            bad = ~np.isfinite(buffers.z) & (buffers.mask > 0.5)
-            if bad.any():
-                detail = f"measurement z has NaN/Inf at components {np.flatnonzero(bad).tolist()}; pass nan='mask' to skip them"
+        if code == STATUS_NONFINITE and measurement is not None:
+            detail = self._nonfinite_detail(self.measurements[measurement])
         raise SymkfError(f"{self.family} {what}", code, detail)
 
+    @staticmethod
+    def _nonfinite_detail(buffers: dict) -> str:
+        if "z" not in buffers:
+            return ""
+        mask = buffers.get("mask", np.ones(1))
+        bad = ~np.isfinite(buffers["z"]) & (mask > 0.5 if mask.shape == buffers["z"].shape else mask[0] > 0.5)
+        if not bad.any():
+            return ""
+        return f"measurement z has NaN/Inf at components {np.flatnonzero(bad).tolist()}; pass nan='mask' to skip them"
+
     # ------------------------------------------------------------------ whole runs
-    def run(self, times, z, measurement: str | None = None, q=None, mask=None, u=None) -> RunResult:
+    def run(self, times, z, measurement: str | None = None, q=None, mask=None, u=None,
+            nan: str = "raise") -> RunResult:
         """Filter a whole record in one compiled call: step k predicts from times[k-1] to times[k]
-        (the first step has dt = 0) and updates with z[k]. The filter's x, P end at the last step.
+        (the first step has dt = 0) and updates with z[k]. The filter's x, P and t end at the last
+        step. A step that fails keeps the state and records its code in ``status``.
 
         Args:
-            times: (N,) measurement times; z: (N, m); q: (N, nq) or (nq,); mask: (N, m) or None.
+            times: (N,) strictly increasing; z: (N, m); q: (N, nq) or (nq,); mask: (N, m) or None;
+            u: (N, nu) or (nu,) or None (the current input held).
         """
-        name = measurement or self._default_measurement
-        meas = self.measurements[name]
-        times = np.asarray(times, dtype=float)
+        name = self._measurement_name(measurement, "step")
+        times = contract.run_times(times)
         n_steps = times.size
-        per_step = {
-            "t": np.concatenate([[times[0]], times[:-1]]) if n_steps else times,
-            "dt": np.diff(times, prepend=times[:1]) if n_steps else times,
-            "z": as_array("z", z, (n_steps, meas.z.size)),
-            "mask": np.ones((n_steps, meas.z.size)) if mask is None else as_array("mask", mask, (n_steps, meas.z.size)),
-            "q": np.broadcast_to(meas.q if q is None else np.asarray(q, float), (n_steps, meas.q.size)),
-            "u": np.broadcast_to(self._buffers["u"] if u is None else np.asarray(u, float),
-                                 (n_steps, self._buffers["u"].size)),
-        }
-        per_step["z"] = np.where(per_step["mask"] > 0.5, per_step["z"], 0.0)
-        constants = {**self._buffers, "R": meas.R}
-        return self._run_kernel(f"{self.family}_step_{name}", per_step, constants, n_steps)
+        per_step = {"t": np.concatenate([times[:1], times[:-1]]), "dt": np.diff(times, prepend=times[:1])}
+        per_step.update(self._run_series(name, n_steps, {"z": z, "q": q, "mask": mask}, u, nan))
+        return self._run(name, per_step, n_steps)
 
-    def _run_kernel(self, kernel: str, per_step: dict, constants: dict, n_steps: int) -> RunResult:
+    def _run_series(self, name: str, n_steps: int, given: dict, u, nan: str) -> dict[str, np.ndarray]:
+        """Validated per-step arrays of a run (same rules as step(), for every row at once)."""
+        nan = contract.nan_policy(nan)
+        buffers = self.measurements[name]
+        series = {}
+        for key, value in given.items():
+            if key not in buffers:
+                if value is not None:
+                    raise ValueError(f"{key}: measurement '{name}' of filter '{self.family}' takes no {key}")
+                continue
+            shape = buffers[key].shape
+            if key == "q" and value is None and buffers[key].size:
+                params = [v["name"] for v in self.model["measurements"][name]["params"]]
+                raise ValueError(f"q: measurement '{name}' needs its parameters {params} (q=...)")
+            if key == "mask":
+                series[key] = np.ones((n_steps,) + shape) if value is None else contract.mask(value, (n_steps,) + shape)
+            elif value is None and not buffers[key].size:
+                series[key] = np.zeros((n_steps,) + shape)
+            else:
+                series[key] = self._series(key, value, n_steps, shape)
+        if "u" in self._buffers:
+            series["u"] = self._series("u", self._buffers["u"] if u is None else u, n_steps, self._buffers["u"].shape)
+            if not np.isfinite(series["u"]).all():
+                raise ValueError("u: contains NaN or Inf")
+        elif u is not None:
+            raise ValueError(f"u: filter '{self.family}' has no inputs")
+        return self._run_nan_policy(series, buffers, nan)
+
+    @staticmethod
+    def _series(key: str, value, n_steps: int, shape: tuple) -> np.ndarray:
+        array = np.asarray(value, dtype=float) if not isinstance(value, (str, bytes)) else None
+        if array is not None and array.shape == shape:
+            return np.broadcast_to(array, (n_steps,) + shape)
+        return as_array(key, value, (n_steps,) + shape)
+
+    def _run_nan_policy(self, series: dict, buffers: dict, nan: str) -> dict:
+        """NaN policy and finiteness for a run: every used component must be finite ("raise"),
+        or non-finite components are masked ("mask"); masked components are zeroed."""
+        if "z" not in series:
+            return series
+        z, mask = series["z"], series["mask"]
+        finite = np.isfinite(z)
+        per_component = mask.shape == z.shape
+        used = mask > 0.5 if per_component else np.broadcast_to(mask > 0.5, z.shape)
+        if nan == "mask":
+            mask = mask * (finite if per_component else finite.all(axis=1, keepdims=True))
+        elif np.any(used & ~finite):
+            rows = np.flatnonzero(np.any(used & ~finite, axis=1))
+            raise ValueError(f"z: NaN/Inf in used components at steps {rows[:10].tolist()}; pass nan='mask' to skip them")
+        for key, value in series.items():
+            if key not in ("z", "mask") and not np.isfinite(value).all():
+                raise ValueError(f"{key}: contains NaN or Inf")
+        series["mask"] = mask
+        keep = mask > 0.5 if per_component else np.broadcast_to(mask > 0.5, z.shape)
+        series["z"] = np.where(keep, z, self._masked_fill(buffers))
+        return series
+
+    @staticmethod
+    def _masked_fill(buffers: dict) -> np.ndarray | float:
+        return 0.0
+
+    def _run(self, name: str, per_step: dict, n_steps: int) -> RunResult:
+        """The run loop, written once: the C ``<kernel>_run`` or, on the VM backend, step by step."""
+        kernel = self.spec.step[name]
         info = self._backend.kernels[kernel]
-        n = self.n
-        x_hist, P_hist = np.zeros((n_steps, n)), np.zeros((n_steps, n, n))
+        constants = {**self._buffers, **self.measurements[name]}
+        arrays = [np.ascontiguousarray(per_step[n], dtype=float) if n in info.per_step
+                  else np.asfortranarray(constants[n], dtype=float) for n, _ in info.inputs]
+        histories = {n: np.zeros((n_steps,) + self._buffers[n].shape[::-1]) for n in self.spec.state}
         status = np.zeros(n_steps, dtype=np.intc)
         run = self._backend.run_function(kernel)
-        arrays = []
-        for name, shape in info.inputs:
-            if name in info.per_step:
-                arrays.append(np.ascontiguousarray(per_step[name], dtype=float))
-            else:
-                arrays.append(np.asfortranarray(constants[name], dtype=float))
         if run is not None:
-            run(n_steps, *[a.ctypes.data for a in arrays], x_hist.ctypes.data, P_hist.ctypes.data,
+            run(n_steps, *[a.ctypes.data for a in arrays], *[histories[n].ctypes.data for n in self.spec.state],
                 status.ctypes.data)
         else:
-            self._run_in_python(kernel, info, arrays, x_hist, P_hist, status)
+            self._run_in_python(kernel, info, arrays, histories, status)
         if n_steps:
-            self._buffers["x"][:] = x_hist[-1]
-            self._buffers["P"][:] = P_hist[-1].T
-            self.t = float(per_step["t"][-1] + per_step["dt"][-1])
-        return RunResult(x_hist, np.transpose(P_hist, (0, 2, 1)), status)
+            for n in self.spec.state:
+                self._buffers[n][...] = histories[n][-1].T
+            self.t = float(per_step["t"][-1] + per_step["dt"][-1]) if "t" in per_step else self.t
+        P = np.transpose(histories["P"], (0, 2, 1)) if "P" in histories else None
+        return RunResult(histories["x"], P, status)
 
-    def _run_in_python(self, kernel, info, arrays, x_hist, P_hist, status) -> None:
-        """The run loop for the VM backend: the same kernel, step by step."""
-        buffers = {name: np.zeros(shape, order="F") for name, shape in info.inputs + info.outputs[:-1]}
-        for (name, shape), array in zip(info.inputs, arrays):
-            if name not in info.per_step:
-                buffers[name].reshape(-1, order="F")[:] = array.reshape(-1, order="F")
+    def _run_in_python(self, kernel, info, arrays, histories, status) -> None:
+        """The run loop for the VM backend: the same kernel, step by step, on scratch buffers."""
+        buffers = {n: _buffer(shape) for n, shape in info.inputs + info.outputs[:-1]}
+        for (n, _), array in zip(info.inputs, arrays):
+            if n not in info.per_step:
+                buffers[n].reshape(-1, order="F")[:] = array.reshape(-1, order="F")
         call = self._backend.bind(kernel, buffers)
         for k in range(status.size):
-            for (name, shape), array in zip(info.inputs, arrays):
-                if name in info.per_step:
-                    buffers[name].reshape(-1, order="F")[:] = array[k].reshape(-1)
+            for (n, _), array in zip(info.inputs, arrays):
+                if n in info.per_step:
+                    buffers[n].reshape(-1, order="F")[:] = array[k].reshape(-1)
             status[k] = call()
-            x_hist[k] = buffers["x"]
-            P_hist[k] = buffers["P"].T
+            for n, history in histories.items():
+                history[k] = buffers[n].T
+
+
+#: Older name of :class:`Filter` (the launcher's EKF/UKF are plain Filters).
+KalmanFilter = Filter
+

@@ -2,7 +2,8 @@
 
 ``kalman`` (EKF, UKF), ``cd_ekf`` (continuous-discrete EKF), ``quaternion_filters`` (multiplicative
 EKF and quaternion-mean UKF), ``gradient_descent`` (MARG filter). A module here defines
-``def kernels(model, symbols, functions) -> list[Kernel]`` and calls
+``def kernels(model, symbols, functions) -> Family`` (its kernels and the
+:class:`~symkf.codegen.spec.FilterSpec` of every filter they make up) and calls
 ``symkf.codegen.kernels.register_family("<name>", kernels)``. Every module in this folder is
 imported below, so adding a family is adding a file.
 """

@@ -34,8 +34,9 @@ import casadi as ca
 from symkf.models.base import Model
 from .. import linalg
 from ..discretize import FUNCTION_OPTIONS, continuous_dynamics
-from ..kernels import ModelFunctions, Symbols, innovation, masked_noise, compose_step, register_family
-from ..spec import STATUS_NOT_PD, Kernel
+from ..kernels import (ModelFunctions, Symbols, all_finite, compose_step, filter_spec, gated, innovation,
+                       masked_finite, masked_noise, register_family, update_status)
+from ..spec import Family, Kernel
 
 FAMILY = "cd_ekf"
 _CALLED = dict(FUNCTION_OPTIONS, never_inline=True)
@@ -127,49 +128,64 @@ def measurement_jacobian(model: Model, name: str) -> ca.Function:
 
 
 def measurement_terms(model: Model, name: str) -> ca.Function:
-    """(t, x, u, p, q, z, mask, R) -> masked sparse H, masked R, innovation y (small, SX)."""
+    """(t, x, u, p, q, z, mask, R, gate) -> masked sparse H, masked R, innovation y, and a 0/1 flag
+    that every input is finite (z only where used) (small, SX)."""
     meas = model.measurements[name]
     m, n = meas.size, model.nx
     t, x, u, p = ca.SX.sym("t"), ca.SX.sym("x", n), ca.SX.sym("u", model.u.shape[0]), ca.SX.sym("p", model.p.shape[0])
     q, z, mask, R = ca.SX.sym("q", meas.q.shape[0]), ca.SX.sym("z", m), ca.SX.sym("mask", m), ca.SX.sym("R", m, m)
+    gate = ca.SX.sym("gate", m)
     z_pred, H = measurement_jacobian(model, name)(t, x, u, p, q)
     y = innovation(z, z_pred, mask, meas.wrap)
-    return ca.Function(f"{model.name}_cd_terms_{name}", [t, x, u, p, q, z, mask, R],
-                       [ca.diag(mask) @ H, masked_noise(R, mask), y],
-                       ["t", "x", "u", "p", "q", "z", "mask", "R"], ["H", "R", "y"], _CALLED)
+    finite = all_finite([t, x, u, p, q, mask, R, gate]) * masked_finite(z, mask)
+    return ca.Function(f"{model.name}_cd_terms_{name}", [t, x, u, p, q, z, mask, R, gate],
+                       [ca.diag(mask) @ H, masked_noise(R, mask), y, finite],
+                       ["t", "x", "u", "p", "q", "z", "mask", "R", "gate"], ["H", "R", "y", "finite"], _CALLED)
+
+
+def covariance_check(n: int, prefix: str) -> ca.Function:
+    """P -> 0/1 flag that P is positive semi-definite (the EKF refuses anything else)."""
+    P = ca.SX.sym("P", n, n)
+    return ca.Function(f"{prefix}_cd_psd_{n}", [P], [linalg.psd_flag(P)], ["P"], ["ok"], _CALLED)
 
 
 def kalman_gain(n: int, m: int, prefix: str) -> ca.Function:
-    """(S, U) -> K = U^T S^-1 by Cholesky, and a 0/1 flag that S was positive definite."""
-    S, U = ca.SX.sym("S", m, m), ca.SX.sym("U", m, n)
+    """(S, U, y) -> K = U^T S^-1 by Cholesky, a 0/1 flag that S was positive definite, and the
+    normalised innovation squared y^T S^-1 y (for the gate)."""
+    S, U, y = ca.SX.sym("S", m, m), ca.SX.sym("U", m, n), ca.SX.sym("y", m)
     L, ok = linalg.cholesky(linalg.symmetrize(S))
-    return ca.Function(f"{prefix}_cd_gain_{n}x{m}", [S, U], [linalg.cholesky_solve(L, U).T, ok],
-                       ["S", "U"], ["K", "ok"], _CALLED)
+    return ca.Function(f"{prefix}_cd_gain_{n}x{m}", [S, U, y],
+                       [linalg.cholesky_solve(L, U).T, ok, ca.sumsqr(linalg.solve_lower(L, y))],
+                       ["S", "U", "y"], ["K", "ok", "nis"], _CALLED)
 
 
-def update_function(model: Model, name: str, gain: ca.Function) -> ca.Function:
+def update_function(model: Model, name: str, gain: ca.Function, psd: ca.Function) -> ca.Function:
     """Table 1 measurement update, masked (see module docstring), as an MX function: the
     n x n algebra (U = H P with H sparse, P - K U) is emitted as C loops, not unrolled."""
     meas = model.measurements[name]
     n, m = model.nx, meas.size
     sym = ca.MX.sym
     t, x, P, u, p = sym("t"), sym("x", n), sym("P", n, n), sym("u", model.u.shape[0]), sym("p", model.p.shape[0])
-    q, z, mask, R = sym("q", meas.q.shape[0]), sym("z", m), sym("mask", m), sym("R", m, m)
-    H, R_masked, y = measurement_terms(model, name)(t, x, u, p, q, z, mask, R)
+    q, z, mask, R, gate = sym("q", meas.q.shape[0]), sym("z", m), sym("mask", m), sym("R", m, m), sym("gate", m)
+    H, R_masked, y, finite = measurement_terms(model, name)(t, x, u, p, q, z, mask, R, gate)
     U = ca.mtimes(H, P)                                   # m x n, only H's non-zeros multiply
     S = ca.mtimes(U, H.T) + R_masked
     S = 0.5 * (S + S.T)
-    K, ok = gain(S, U)                                    # n x m = P H^T S^-1 (shared per m)
+    K, ok, nis = gain(S, U, y)                            # n x m = P H^T S^-1 (shared per m)
     P_new = P - ca.mtimes(K, U)                           # (I - K H) P
     P_new = 0.5 * (P_new + P_new.T)
-    status = ca.if_else(ok, 0, STATUS_NOT_PD)
-    names = ["t", "x", "P", "u", "p", "q", "z", "mask", "R"]
-    return ca.Function(f"{model.name}_k_{FAMILY}_update_{name}", [t, x, P, u, p, q, z, mask, R],
-                       [x + ca.mtimes(K, y), P_new, y, S, status], names, ["x", "P", "y", "S", "status"],
-                       {"allow_duplicate_io_names": True})
+    finite = finite * (ca.sum1(ca.sum2(ca.fabs(P) < ca.inf)) == n * n)
+    ok = ok * psd(P)                                      # the EKF refuses a P with a negative variance
+    is_gated = gated(gate, mask, nis)
+    status = update_status(ok, is_gated, finite)
+    keep = status == 0
+    names = ["t", "x", "P", "u", "p", "q", "z", "mask", "R", "gate"]
+    return ca.Function(f"{model.name}_k_{FAMILY}_update_{name}", [t, x, P, u, p, q, z, mask, R, gate],
+                       [ca.if_else(keep, x + ca.mtimes(K, y), x), ca.if_else(keep, P_new, P), y, S, status],
+                       names, ["x", "P", "y", "S", "status"], {"allow_duplicate_io_names": True})
 
 
-def cd_ekf_kernels(model: Model, symbols: Symbols, functions: ModelFunctions) -> list[Kernel]:
+def cd_ekf_kernels(model: Model, symbols: Symbols, functions: ModelFunctions) -> Family:
     """The continuous-discrete EKF of Table 1 for ``model`` (any model: nothing here is GEO-specific)."""
     substeps = functions.config.rk4_substeps
     predict = Kernel(f"{FAMILY}_predict", predict_function(model, substeps),
@@ -178,17 +194,18 @@ def cd_ekf_kernels(model: Model, symbols: Symbols, functions: ModelFunctions) ->
                      tuple(symbols.arg[a] for a in ("t", "dt", "x", "P", "u", "p", "Q")),
                      tuple(symbols.arg[a] for a in ("x", "P", "status")))
     gains = {m: kalman_gain(model.nx, m, model.name) for m in {meas.size for meas in model.measurements.values()}}
+    psd = covariance_check(model.nx, model.name)
     kernels = [predict]
     for name in model.measurements:
         _, marg = symbols.measurement(name)
         args = {**symbols.arg, **marg}
         update = Kernel(f"{FAMILY}_update_{name}",
-                        update_function(model, name, gains[model.measurements[name].size]),
+                        update_function(model, name, gains[model.measurements[name].size], psd),
                         f"Continuous-discrete EKF update with '{name}' at time t (masked, P = (I - K H) P).",
-                        tuple(args[a] for a in ("t", "x", "P", "u", "p", "q", "z", "mask", "R")),
+                        tuple(args[a] for a in ("t", "x", "P", "u", "p", "q", "z", "mask", "R", "gate")),
                         tuple(args[a] for a in ("x", "P", "y", "S", "status")))
         kernels += [update, compose_step(f"{FAMILY}_step_{name}", predict, update)]
-    return kernels
+    return Family(kernels, [filter_spec(FAMILY, FAMILY, kernels, model.measurements)])
 
 
 register_family(FAMILY, cd_ekf_kernels)

@@ -26,9 +26,9 @@ from functools import lru_cache
 import casadi as ca
 
 from symkf.models import marg as paper
-from ..kernels import ModelFunctions, Symbols, make_kernel, register_family
+from ..kernels import ModelFunctions, Symbols, all_finite, make_kernel, register_family
 from ..linalg import select
-from ..spec import STATUS_DOMAIN, Arg, Kernel
+from ..spec import STATUS_DOMAIN, STATUS_NONFINITE, Arg, Family, FilterSpec, Kernel
 
 #: A norm below this counts as zero (a zero-norm sample, a vanishing gradient).
 ZERO_NORM = 1e-12
@@ -91,7 +91,8 @@ def correction_direction(q: ca.SX, acc: ca.SX, mag: ca.SX | None) -> tuple[ca.SX
 
 def filter_step(form: str, q: ca.SX, dt: ca.SX, gyro: ca.SX, acc: ca.SX, mag: ca.SX | None,
                 beta: ca.SX, alpha: ca.SX) -> ca.SX:
-    """One step of the full form (26)-(30) or the simplified form (31); returns the unit q_est."""
+    """One step of the full form (26)-(30) or the simplified form (31); returns q_est before it
+    is normalised (the kernel checks its norm is finite and non-zero first)."""
     q_dot = marg_functions()["quaternion_rate"](q, gyro)             # (7)-(8)
     direction, corrected = correction_direction(q, acc, mag)          # (27), normalised
     if form == "simple":
@@ -105,7 +106,7 @@ def filter_step(form: str, q: ca.SX, dt: ca.SX, gyro: ca.SX, acc: ca.SX, mag: ca
         q_est = gamma * q_nabla + (1 - gamma) * q_omega               # (29)
     else:
         raise ValueError(f"form: expected one of {FORMS}, got {form!r}")
-    return q_est / ca.norm_2(q_est)
+    return q_est
 
 
 def _args() -> tuple[dict, dict]:
@@ -120,15 +121,20 @@ def step_kernel(symbols: Symbols, form: str, mode: str) -> Kernel:
     extra_sym, extra_arg = _args()
     beta, alpha = s["p"][0], s["p"][1]
     mag = extra_sym["mag"] if mode == "marg" else None
-    q_new = filter_step(form, s["x"], s["dt"], s["u"], extra_sym["acc"], mag, beta, alpha)
-    ok = (s["dt"] >= 0) * (beta >= 0)
+    q_est = filter_step(form, s["x"], s["dt"], s["u"], extra_sym["acc"], mag, beta, alpha)
+    norm = ca.norm_2(q_est)
+    q_new = q_est / select(norm > ZERO_NORM, norm, 1)
     inputs = ["x", "dt", "u", "acc"] + (["mag"] if mode == "marg" else []) + ["p"]
+    finite = all_finite([s[i] if i in s else extra_sym[i] for i in inputs]) * (norm < ca.inf)
+    status = select(finite, select((s["dt"] >= 0) * (beta >= 0) * (norm > ZERO_NORM), 0, STATUS_DOMAIN),
+                    STATUS_NONFINITE)     # a huge sample overflows |q| to Inf: an error, never q = 0
+    ok = status == 0
     equations = "(26)-(30)" if form == "full" else "(31)"
     sensors = "gyro + accelerometer + magnetometer" if mode == "marg" else "gyro + accelerometer"
     return make_kernel(
         f"gd_{form}_{mode}", f"Gradient-descent filter step, paper 001 eq {equations}, {sensors}; real dt per step.",
         symbols, extra_sym, extra_arg, inputs,
-        [("x", select(ok, q_new, s["x"])), ("status", select(ok, 0, STATUS_DOMAIN))],
+        [("x", select(ok, q_new, s["x"])), ("status", status)],
         carried=("x",), per_step=tuple(i for i in inputs if i in ("dt", "u", "acc", "mag")))
 
 
@@ -151,15 +157,18 @@ def initial_kernel(symbols: Symbols, mode: str) -> Kernel:
                        [("x", q0), ("status", select(ok, 0, STATUS_DOMAIN))])
 
 
-def kernels(model, symbols: Symbols, functions: ModelFunctions) -> list[Kernel]:
-    """All gradient-descent kernels (4 step kernels, 2 initial-orientation kernels)."""
+def kernels(model, symbols: Symbols, functions: ModelFunctions) -> Family:
+    """All gradient-descent kernels (4 step kernels, 2 initial-orientation kernels) and the four
+    filters (form x mode) they make up: state x only, no predict, the samples as the measurement."""
     expected = (["qx", "qy", "qz", "qw"], 3, ["beta", "alpha"])
     found = (model.state_names(), len(model.inputs), [v.name for v in model.params])
     if found != expected:
         raise ValueError(f"filter family 'marg' needs states {expected[0]}, 3 gyro inputs and params "
                          f"{expected[2]} (as models/marg.py declares); model '{model.name}' has {found}")
     result = [step_kernel(symbols, form, mode) for form in FORMS for mode in MODES]
-    return result + [initial_kernel(symbols, mode) for mode in MODES]
+    specs = [FilterSpec(f"gd_{form}_{mode}", f"gd_{form}", "", {}, {mode: f"gd_{form}_{mode}"}, state=("x",),
+                        diagnostics=(), measurement_inputs=("acc", "mag")) for form in FORMS for mode in MODES]
+    return Family(result + [initial_kernel(symbols, mode) for mode in MODES], specs)
 
 
 register_family("marg", kernels)

@@ -27,9 +27,9 @@ import casadi as ca
 
 from symkf.models.base import Model
 from .. import linalg
-from ..kernels import (ModelFunctions, Symbols, compose_step, innovation, keep_on_failure, make_kernel,
-                       masked_noise, register_family, update_outputs)
-from ..spec import STATUS_DOMAIN, STATUS_NOT_PD, Arg, Kernel
+from ..kernels import (ModelFunctions, Symbols, all_finite, compose_step, filter_spec, innovation,
+                       make_kernel, masked_finite, masked_noise, register_family, update_outputs)
+from ..spec import STATUS_DOMAIN, STATUS_NONFINITE, STATUS_NOT_PD, Arg, Family
 
 
 # ---------------------------------------------------------------------- process noise
@@ -79,25 +79,46 @@ def ekf_update_expr(symbols: Symbols, fns: ModelFunctions, name: str, msym: dict
     I_KH = ca.SX.eye(n) - K @ H
     x_new = x + K @ y
     P_new = linalg.symmetrize(I_KH @ P @ I_KH.T + K @ R @ K.T)
-    return x_new, P_new, y, S, ok
+    nis = ca.sumsqr(linalg.solve_lower(L, y))                 # y^T S^-1 y, for the gate
+    return x_new, P_new, y, S, ok * linalg.psd_flag(P), nis
 
 
-def ekf_kernels(model: Model, symbols: Symbols, fns: ModelFunctions) -> list[Kernel]:
+def update_inputs_finite(symbols: Symbols, msym: dict, extra=()) -> ca.SX:
+    """Every input of an update is finite (z only where the mask uses it)."""
+    s = symbols.sym
+    return all_finite([s["x"], s["P"], s["u"], s["p"], msym["q"], msym["mask"], msym["R"], msym["gate"], *extra]) * \
+        masked_finite(msym["z"], msym["mask"])
+
+
+UPDATE_INPUTS = ["t", "x", "P", "u", "p", "q", "z", "mask", "R", "gate"]
+
+
+def predict_status(symbols: Symbols, ok: ca.SX, Q: ca.SX, extra=()) -> ca.SX:
+    """NONFINITE for a NaN/Inf input, else NOT_PD unless ``ok`` (P could be factorised), else 0."""
+    s = symbols.sym
+    finite = all_finite([s["t"], s["dt"], s["x"], s["P"], s["u"], s["p"], Q, *extra])
+    return linalg.select(finite, linalg.select(ok, 0, STATUS_NOT_PD), STATUS_NONFINITE)
+
+
+def ekf_kernels(model: Model, symbols: Symbols, fns: ModelFunctions) -> Family:
     s = symbols.sym
     qsym, qarg = noise_symbols(model)
-    x_pred, P_pred = ekf_predict_expr(symbols, fns, s["x"], s["P"], s["t"], s["dt"], qsym.get("Q", s["Q"]))
+    Q = qsym.get("Q", s["Q"])
+    x_pred, P_pred = ekf_predict_expr(symbols, fns, s["x"], s["P"], s["t"], s["dt"], Q)
+    status = predict_status(symbols, linalg.psd_flag(s["P"]), Q)
     kernels = [make_kernel("ekf_predict", _predict_doc(model, "EKF", "P = F P F^T + Q_d"),
                        symbols, qsym, qarg, ["t", "dt", "x", "P", "u", "p", "Q"],
-                       [("x", x_pred), ("P", P_pred), ("status", ca.SX(0))])]
+                       [("x", linalg.select(status == 0, x_pred, s["x"])),
+                        ("P", linalg.select(status == 0, P_pred, s["P"])), ("status", status)])]
     for name, meas in model.measurements.items():
         msym, marg = symbols.measurement(name)
         upd = ekf_update_expr(symbols, fns, name, msym, meas.wrap, s["x"], s["P"], s["t"])
         kernels.append(make_kernel(
-            f"ekf_update_{name}", f"EKF update with measurement '{name}' at time t (Joseph form, masked).",
-            symbols, msym, marg, ["t", "x", "P", "u", "p", "q", "z", "mask", "R"],
-            update_outputs(upd, s["x"], s["P"])))
+            f"ekf_update_{name}", f"EKF update with measurement '{name}' at time t (Joseph form, masked, gated).",
+            symbols, msym, marg, UPDATE_INPUTS,
+            update_outputs(upd, s["x"], s["P"], msym["gate"], msym["mask"], update_inputs_finite(symbols, msym))))
         kernels.append(compose_step(f"ekf_step_{name}", kernels[0], kernels[-1]))
-    return kernels
+    return Family(kernels, [filter_spec("ekf", "ekf", kernels, model.measurements)])
 
 
 # ---------------------------------------------------------------------- UKF
@@ -152,15 +173,18 @@ def ukf_update_expr(symbols: Symbols, fns: ModelFunctions, name: str, msym: dict
     y = innovation(msym["z"], z_pred, mask, wrap)
     x_new = x + U.T @ linalg.solve_lower(L, y)
     P_new = linalg.symmetrize(P - U.T @ U)
-    return x_new, P_new, y, S, ok * ok_s
+    nis = ca.sumsqr(linalg.solve_lower(L, y))                 # y^T S^-1 y, for the gate
+    return x_new, P_new, y, S, ok * ok_s, nis
 
 
-def ukf_kernels(model: Model, symbols: Symbols, fns: ModelFunctions) -> list[Kernel]:
+def ukf_kernels(model: Model, symbols: Symbols, fns: ModelFunctions) -> Family:
     s = symbols.sym
     qsym, qarg = noise_symbols(model)
-    x_pred, P_pred, ok_pred = ukf_predict_expr(symbols, fns, s["x"], s["P"], s["t"], s["dt"], qsym.get("Q", s["Q"]))
-    x_out, P_out, status = keep_on_failure(ok_pred, [x_pred, P_pred], [s["x"], s["P"]], STATUS_NOT_PD)
+    Q = qsym.get("Q", s["Q"])
+    x_pred, P_pred, ok_pred = ukf_predict_expr(symbols, fns, s["x"], s["P"], s["t"], s["dt"], Q)
+    status = predict_status(symbols, ok_pred, Q, [s["kappa"]])
     status = linalg.select(s["kappa"] + model.nx > 0, status, STATUS_DOMAIN)
+    x_out, P_out = (linalg.select(status == 0, new, old) for new, old in ((x_pred, s["x"]), (P_pred, s["P"])))
     kernels = [make_kernel("ukf_predict", _predict_doc(model, "UKF", "2n+1 sigma points, eq (1)-(3)"),
                        symbols, qsym, qarg, ["t", "dt", "x", "P", "u", "p", "Q", "kappa"],
                        [("x", x_out), ("P", P_out), ("status", status)])]
@@ -169,10 +193,11 @@ def ukf_kernels(model: Model, symbols: Symbols, fns: ModelFunctions) -> list[Ker
         upd = ukf_update_expr(symbols, fns, name, msym, meas.wrap, s["x"], s["P"], s["t"])
         kernels.append(make_kernel(
             f"ukf_update_{name}", f"UKF update with measurement '{name}' at time t (sigma points redrawn, masked).",
-            symbols, msym, marg, ["t", "x", "P", "u", "p", "q", "z", "mask", "R", "kappa"],
-            update_outputs(upd, s["x"], s["P"])))
+            symbols, msym, marg, UPDATE_INPUTS + ["kappa"],
+            update_outputs(upd, s["x"], s["P"], msym["gate"], msym["mask"],
+                           update_inputs_finite(symbols, msym, [s["kappa"]]))))
         kernels.append(compose_step(f"ukf_step_{name}", kernels[0], kernels[-1]))
-    return kernels
+    return Family(kernels, [filter_spec("ukf", "ukf", kernels, model.measurements, defaults={"kappa": 0.0})])
 
 
 register_family("ekf", ekf_kernels)

@@ -61,9 +61,11 @@ from symkf.models import attitude as att
 from symkf.models import quaternion as quat
 from .. import linalg
 from ..discretize import FUNCTION_OPTIONS
-from ..kernels import Symbols, compose_step, make_kernel, register_family
-from ..spec import STATUS_DOMAIN, STATUS_NONFINITE, STATUS_NOT_PD, Arg, Kernel
+from ..kernels import Symbols, compose_step, filter_spec, make_kernel, register_family
+from ..spec import STATUS_DOMAIN, STATUS_NONFINITE, STATUS_NOT_PD, Arg, Family, Kernel
 
+#: UKF scaling κ used unless given: keeps every weight positive (paper 000 leaves κ open).
+DEFAULT_KAPPA = 1.0
 #: Squarings of the shifted M in the quaternion mean: off-dominant directions shrink as r^(2^k).
 MEAN_SQUARINGS = 32
 #: Power-iteration steps that polish the eigenvector after the squarings.
@@ -444,7 +446,7 @@ def mean_kernel(a: AttitudeSymbols, fns: AttitudeFunctions, n_points: int) -> Ke
                        ["quaternions", "weights", "q_ref"], [("q", q_mean), ("status", ca.SX(0))])
 
 
-def attitude_kernels(model, symbols: Symbols, functions) -> list[Kernel]:
+def attitude_kernels(model, symbols: Symbols, functions) -> Family:
     """All kernels of the "attitude" family (functions: the generic ModelFunctions, unused here)."""
     del functions
     if model.nx != 7 or "star_tracker" not in model.measurements:
@@ -457,7 +459,11 @@ def attitude_kernels(model, symbols: Symbols, functions) -> list[Kernel]:
     predict, update = ukf_predict_kernel(a, fns), ukf_update_kernel(a, fns)
     kernels += [predict, update, compose_step("ukf_step_star_tracker", predict, update)]
     kernels += [augmented_predict_kernel(a, fns), augmented_step_kernel(a, fns)]
-    return kernels
+    fields = dict(measurement_inputs=("z", "mask", "R"))
+    specs = [filter_spec("mekf", "mekf", kernels, model.measurements, **fields),
+             filter_spec("ukf", "qukf", kernels, model.measurements, defaults={"kappa": DEFAULT_KAPPA}, **fields),
+             filter_spec("aukf", "aukf", kernels, model.measurements, defaults={"kappa": DEFAULT_KAPPA}, **fields)]
+    return Family(kernels, specs)
 
 
 register_family("attitude", attitude_kernels)

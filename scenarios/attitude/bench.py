@@ -50,13 +50,14 @@ def _median_us(function, repeats: int, steps: int) -> float:
 
 def _kernel_us(filt: AttitudeFilter, call, repeats: int, calls: int) -> float:
     """One bound kernel call (x, P restored after each, so every call does the same work)."""
-    x0, P0 = filt._buffers["x"].copy(), filt._buffers["P"].copy()
+    x0, P0 = filt.x.copy(), filt.P.copy()
+    x, P = filt.kernel_buffer("x"), filt.kernel_buffer("P")
 
     def loop():
         for _ in range(calls):
             call()
-            filt._buffers["x"][:] = x0
-            filt._buffers["P"][:] = P0
+            x[:] = x0
+            P[:] = P0
     return _median_us(loop, repeats, calls)
 
 
@@ -68,11 +69,11 @@ def bench(steps: int, repeats: int, reference_steps: int) -> dict:
         row = {"sigma_points": SIGMA_POINTS[kind]}
         q0, omega, z = _inputs(steps, True)
         filt = AttitudeFilter(compiled, kind, q0, np.zeros(3), P0)
-        filt._set_step(omega[0], 0.25)
-        filt._buffers["z"][:] = z[0]
-        filt._buffers["mask"][0] = 1.0
-        row["kernel_predict_us"] = _kernel_us(filt, filt._predict, repeats, steps)
-        row["kernel_step_with_update_us"] = _kernel_us(filt, filt._step, repeats, steps)
+        x, P = filt.x.copy(), filt.P.copy()
+        filt.step(omega[0], 0.25, z[0])                 # fills the input buffers of the bound kernels
+        filt.x, filt.P = x, P
+        row["kernel_predict_us"] = _kernel_us(filt, filt.kernel_call("predict"), repeats, steps)
+        row["kernel_step_with_update_us"] = _kernel_us(filt, filt.kernel_call("step"), repeats, steps)
         row["run_loop_step_with_update_us"] = _median_us(
             lambda: AttitudeFilter(compiled, kind, q0, np.zeros(3), P0).run(omega, 0.25, z), repeats, steps)
         for label, with_star in (("propagate", False), ("propagate_update", True)):

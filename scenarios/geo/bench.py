@@ -115,7 +115,8 @@ def _median_us(call, n: int = 2000, blocks: int = 7) -> float:
 def step_cost() -> dict:
     from symkf.models import geo_satellite as geo
     from symkf.models import get_model
-    from symkf.runtime.geo import NumpyCDEKF, _load
+    from symkf.runtime.reference import NumpyCDEKF
+    from symkf.scenarios.geo.closed_loop import _load
     compiled = _load()
     tune = geo.filter_tuning()
     x0 = geo.initial_errors(geo.TABLE6)

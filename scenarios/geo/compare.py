@@ -13,7 +13,7 @@ Initial errors: Table 6 (Table 4 for the section-3 run); the truth starts at the
 Writes ``case<N>.png`` figures and ``summary.json``: per run the final and peak attitude error
 (deg), converged / bounded / diverged, the estimation errors (EKF runs), and per case one boolean
 per claim of the paper with its evidence. All dynamics come from ``models/geo_satellite.py``
-through ``symkf.runtime.geo``; nothing here restates an equation.
+through ``symkf.scenarios.geo.closed_loop``; nothing here restates an equation.
 """
 from __future__ import annotations
 
@@ -25,9 +25,9 @@ from pathlib import Path
 import numpy as np
 
 from symkf.models import geo_satellite as geo
-from symkf.runtime.geo import LoopResult, LoopSettings, closed_loop_eigenvalues, geometry_rank, simulate
 from symkf.scenarios.campaign import (ModelKey, Task, add_scheduler_arguments, compiled_model, model_key, run_campaign,
                                       scheduler_problem)
+from symkf.scenarios.geo.closed_loop import LoopResult, LoopSettings, closed_loop_eigenvalues, geometry_rank, simulate
 
 DEFAULT_DURATION = 1000.0
 #: Converged: the attitude error over the last 10 % stays under this (deg) or 5 % of its peak.

@@ -77,8 +77,12 @@ def _median_us(batch_seconds: list[float], batch: int) -> float:
     return 1e6 * statistics.median(batch_seconds) / batch
 
 
+def _options(family: str) -> dict:
+    return {"kappa": TUNING["kappa"]} if family == "ukf" else {}
+
+
 def time_compiled_step(model, family: str, work: Workload, batch: int = 100) -> float:
-    f = model.filter(family, work.x0, work.P0, TUNING["Q"], kappa=TUNING["kappa"])
+    f = model.filter(family, work.x0, work.P0, TUNING["Q"], **_options(family))
     times, z, q, dt = work.base_times, work.z, work.q, 1.0 / RATE_HZ
     batches, k = [], 0
     while k < work.steps:
@@ -94,7 +98,7 @@ def time_compiled_step(model, family: str, work: Workload, batch: int = 100) -> 
 
 
 def time_compiled_run(model, family: str, work: Workload) -> float:
-    f = model.filter(family, work.x0, work.P0, TUNING["Q"], kappa=TUNING["kappa"])
+    f = model.filter(family, work.x0, work.P0, TUNING["Q"], **_options(family))
     n = len(work.base_times)
     repeats = max(1, int(np.ceil(work.steps / n)))
     per_step = []
@@ -128,7 +132,7 @@ static double now(void) { struct timespec ts; clock_gettime(CLOCK_MONOTONIC, &ts
 static int rd(double *v, int n) { int i; for (i = 0; i < n; ++i) if (scanf("%lf", &v[i]) != 1) return 0; return 1; }
 static double T[20000], Z[60000], QS[40000];
 int main(int argc, char **argv) {
-  double x0[6], P0[36], x[6], P[36], Q[36], R[9], kappa, p[6], y[3], S[9], u[1], mask[3] = {1, 1, 1};
+  double x0[6], P0[36], x[6], P[36], Q[36], R[9], kappa, p[6], y[3], S[9], u[1], mask[3] = {1, 1, 1}, gate[3] = {0, 0, 0};
   double dt = 0.05, batches[1000], start;
   int n, i, k, b, nb, steps, ukf, code = 0;
   if (argc < 3 || !rd(x0, 6) || !rd(P0, 36) || !rd(Q, 36) || !rd(R, 9) || !rd(&kappa, 1) || !rd(p, 6)) return 2;
@@ -143,8 +147,8 @@ int main(int argc, char **argv) {
     for (i = 0; i < 100; ++i, ++k) {
       int j = 1 + k % (n - 1);
       if (j == 1) { int m; for (m = 0; m < 6; ++m) x[m] = x0[m]; for (m = 0; m < 36; ++m) P[m] = P0[m]; }
-      code |= ukf ? launcher_ukf_step_radar(&T[j - 1], &dt, x, P, u, p, Q, &QS[2 * j], &Z[3 * j], mask, R, &kappa, x, P, y, S)
-                  : launcher_ekf_step_radar(&T[j - 1], &dt, x, P, u, p, Q, &QS[2 * j], &Z[3 * j], mask, R, x, P, y, S);
+      code |= ukf ? launcher_ukf_step_radar(&T[j - 1], &dt, x, P, u, p, Q, &QS[2 * j], &Z[3 * j], mask, R, gate, &kappa, x, P, y, S)
+                  : launcher_ekf_step_radar(&T[j - 1], &dt, x, P, u, p, Q, &QS[2 * j], &Z[3 * j], mask, R, gate, x, P, y, S);
     }
     batches[b] = (now() - start) / 100;
   }

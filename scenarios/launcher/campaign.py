@@ -172,7 +172,8 @@ def run_chunk(key: ModelKey, case: Case, seed: int, runs: tuple[int, int], durat
     for run in range(*runs):
         z = measurements(seed, case, run, track)
         for family in FILTERS:
-            f = model.filter(family, x0, P0, tuning["Q"], kappa=tuning["kappa"])
+            options = {"kappa": tuning["kappa"]} if family == "ukf" else {}
+            f = model.filter(family, x0, P0, tuning["Q"], **options)
             start = time.perf_counter()
             result = f.run(times, z, q=q)
             out.wall_s[family] += time.perf_counter() - start

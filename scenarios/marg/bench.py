@@ -24,7 +24,9 @@ import numpy as np
 from symkf.codegen import build_model
 from symkf.models.marg import ALPHA_DEFAULT, BETA_MADGWICK
 from symkf.runtime import load
-from symkf.runtime.marg import MargFilter, broad_errors, data_dir, load_recording, reference_run
+from symkf.runtime.marg import MargFilter, reference_run
+from symkf.scenarios.marg.data import data_dir, load_recording, run_recording
+from symkf.scenarios.marg.metric import broad_errors
 from .compare import SWEEP_BETAS
 
 FORMS = ("simple", "full")
@@ -96,7 +98,7 @@ def time_form(compiled, recording, form: str, args) -> dict:
 def accuracy(compiled, recording, form: str) -> dict:
     rows = {}
     for beta in [BETA_MADGWICK] + SWEEP_BETAS.tolist():
-        run = MargFilter(compiled, form, "marg", beta=beta).run_recording(recording)
+        run = run_recording(MargFilter(compiled, form, "marg", beta=beta), recording)
         rows[float(beta)] = broad_errors(run.q, recording)
     best = min(rows, key=lambda b: rows[b]["total"])          # over the sweep grid and 0.041
     return {"beta_0.041": rows[BETA_MADGWICK], "best_beta": float(best), "best": rows[float(best)]}

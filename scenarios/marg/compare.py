@@ -31,8 +31,9 @@ import numpy as np
 
 from symkf.models.marg import ALPHA_DEFAULT
 from symkf.runtime import load
-from symkf.runtime.marg import (MargFilter, Recording, broad_errors, data_dir, error_rotation_vectors, euler_angles,
-                            from_enu, load_recording, to_enu)
+from symkf.runtime.marg import MargFilter
+from symkf.scenarios.marg.data import Recording, data_dir, load_recording, run_recording
+from symkf.scenarios.marg.metric import broad_errors, error_rotation_vectors, euler_angles, from_enu, to_enu
 
 DEFAULT_DATA = data_dir() / "broad" / "01_undisturbed_slow_rotation_A.mat"
 SWEEP_BETAS = np.round(np.logspace(-3, 0, 19), 5)
@@ -114,7 +115,7 @@ def _still(recording: Recording) -> np.ndarray | None:
 # ---------------------------------------------------------------------- one beta
 def run_beta(compiled, recording: Recording, beta: float, args) -> tuple[dict, np.ndarray]:
     filt = MargFilter(compiled, args.form, args.mode, beta=beta, alpha=args.alpha)
-    result = filt.run_recording(recording)
+    result = run_recording(filt, recording)
     angles = euler_angles(result.q)
     rate = 1 / np.median(recording.dt[1:])
     entry = {"beta": beta, "failed_steps": int(result.failed_steps.size),

@@ -18,15 +18,15 @@ HARNESS = r"""
 /* stdin: x0[6] P0[36] Q[36] R[9] kappa p[6] n, then n lines: t dt q[2] z[3] mask[3]; stdout: x per step */
 static int read(double *v, int n) { int i; for (i = 0; i < n; ++i) if (scanf("%lf", &v[i]) != 1) return 0; return 1; }
 int main(int argc, char **argv) {
-  double x[6], P[36], Q[36], R[9], kappa, p[6], t, dt, q[2], z[3], mask[3], y[3], S[9], u[1];
+  double x[6], P[36], Q[36], R[9], kappa, p[6], t, dt, q[2], z[3], mask[3], y[3], S[9], u[1], gate[3] = {0, 0, 0};
   int n, k, i, code, ukf = argc > 1;
   (void)argv;
   if (!read(x, 6) || !read(P, 36) || !read(Q, 36) || !read(R, 9) || !read(&kappa, 1) || !read(p, 6)) return 2;
   if (scanf("%d", &n) != 1) return 2;
   for (k = 0; k < n; ++k) {
     if (!read(&t, 1) || !read(&dt, 1) || !read(q, 2) || !read(z, 3) || !read(mask, 3)) return 2;
-    code = ukf ? launcher_ukf_step_radar(&t, &dt, x, P, u, p, Q, q, z, mask, R, &kappa, x, P, y, S)
-               : launcher_ekf_step_radar(&t, &dt, x, P, u, p, Q, q, z, mask, R, x, P, y, S);
+    code = ukf ? launcher_ukf_step_radar(&t, &dt, x, P, u, p, Q, q, z, mask, R, gate, &kappa, x, P, y, S)
+               : launcher_ekf_step_radar(&t, &dt, x, P, u, p, Q, q, z, mask, R, gate, x, P, y, S);
     if (code) { printf("error %d\n", code); return 1; }
     for (i = 0; i < 6; ++i) printf("%.17g ", x[i]);
     printf("\n");
@@ -108,7 +108,7 @@ def test_c_harness_reproduces_python(harness, launcher_compiled, family):
                          capture_output=True, text=True).stdout
     assert "error" not in out, out[-300:]
     c_states = np.array([[float(v) for v in line.split()] for line in out.strip().splitlines()])
-    f = launcher_compiled.filter(family, x0, P0, Q, kappa=kappa)
+    f = launcher_compiled.filter(family, x0, P0, Q, **({"kappa": kappa} if family == "ukf" else {}))
     for k in range(1, len(times)):
         f.step(times[k - 1], 0.05, z[k], q=q[k], mask=mask[k])
         np.testing.assert_allclose(c_states[k - 1], f.x, rtol=1e-13, atol=0)

@@ -7,7 +7,7 @@ import pytest
 from symkf.codegen.discretize import continuous_dynamics, discrete_dynamics
 from symkf.models import geo_satellite as geo
 from symkf.models import get_model
-from symkf.runtime.geo import closed_loop_eigenvalues, geometry_rank, least_squares_rates
+from symkf.scenarios.geo.closed_loop import closed_loop_eigenvalues, geometry_rank, least_squares_rates
 
 STATE = np.r_[0.01, -0.02, 0.03, 0.1, -0.2, 0.3, 1e-3, -2e-3, 3e-3, -10, 5, 10, -15, 1e-4, 2e-4, -1e-4, 3e-5]
 TORQUE = np.array([0.3, -0.1, 0.2, 0.05])

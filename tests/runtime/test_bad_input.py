@@ -38,7 +38,7 @@ def test_wrong_state_and_covariance_inputs(filt):
     x, P = filt.x.copy(), filt.P.copy()
     with pytest.raises(ValueError, match=r"x: expected shape \(6,\)"):
         filt.x = np.zeros(5)
-    with pytest.raises(ValueError, match="P: not positive definite"):
+    with pytest.raises(ValueError, match="P: not positive semi-definite"):
         filt.P = -np.eye(6)
     with pytest.raises(ValueError, match="P: not symmetric"):
         filt.P = np.triu(np.ones((6, 6))) + 6 * np.eye(6)
@@ -84,7 +84,7 @@ def test_all_masked_update_is_a_no_op(filt):
 
 def test_covariance_failure_returns_code_and_keeps_state(launcher_compiled, filt):
     x, P = filt.x.copy(), filt.P.copy()
-    filt.measurements["radar"].R[:] = -np.eye(3)        # innovation covariance cannot be PD
+    filt.measurements["radar"]["R"][:] = -np.eye(3)      # innovation covariance cannot be PD
     with pytest.raises(SymkfError, match="SYMKF_ERR_NOT_PD") as info:
         filt.update(Z, q=STATION)
     assert info.value.code == 2

@@ -5,7 +5,8 @@ import pytest
 from symkf.models import geo_satellite as geo
 from symkf.models import get_model
 from symkf.runtime import SymkfError
-from symkf.runtime.geo import LoopSettings, NumpyCDEKF, _load, simulate
+from symkf.runtime.reference import NumpyCDEKF
+from symkf.scenarios.geo.closed_loop import LoopSettings, _load, simulate
 
 X0 = geo.initial_errors(geo.TABLE6) + np.r_[np.zeros(3), 1e-3 * np.ones(3), np.zeros(11)]
 U = np.array([0.3, -0.1, 0.2, 0.05])
@@ -106,7 +107,10 @@ def test_bad_input_is_named_and_leaves_the_state(compiled):
 def test_not_positive_definite_innovation_fails_cleanly(compiled):
     tune = geo.filter_tuning()
     R = dict(tune["R"], sun_sensor=-np.eye(1) * 10.0)        # S = H P H^T + R < 0
-    ekf = compiled.filter("cd_ekf", X0, tune["P0"], tune["Q"], R=R)
+    with pytest.raises(ValueError, match=r"R\[sun_sensor\]: not positive definite"):
+        compiled.filter("cd_ekf", X0, tune["P0"], tune["Q"], R=R)
+    ekf = compiled.filter("cd_ekf", X0, tune["P0"], tune["Q"], R=tune["R"])
+    ekf.measurements["sun_sensor"]["R"][:] = -10.0                # past the contract: the C code refuses it too
     x, P = ekf.x.copy(), ekf.P.copy()
     with pytest.raises(SymkfError, match="NOT_PD"):
         ekf.update([0.0], measurement="sun_sensor")

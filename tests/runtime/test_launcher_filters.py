@@ -54,7 +54,7 @@ def test_compiled_run_equals_compiled_steps(launcher_compiled, flight, family):
     x0 = truth[0] + np.array([1.0, 1e-8, 1e-8, 100.0, 0, 0])
     stepped = launcher_compiled.filter(family, x0, P0, Q)
     history = []
-    stepped.step(times[0], 0.0, z[0], q=q[0])      # the run's first step: dt = 0, then update
+    stepped.run(times[:1], z[:1], q=q[:1])          # the run's first step (dt = 0; step() needs dt > 0)
     history.append(stepped.x.copy())
     for k in range(1, len(times)):
         stepped.step(times[k - 1], times[k] - times[k - 1], z[k], q=q[k])

@@ -191,8 +191,9 @@ def test_three_paths_agree_on_synthetic_data(compiled, form, mode):
     mag_in = mag if mode == "marg" else None
     run = MargFilter(compiled, form, mode, beta=0.2, q0=q0).run(dt, gyro, acc, mag_in)
     stepper = MargFilter(compiled, form, mode, beta=0.2, q0=q0)
-    steps = np.array([stepper.step(dt[k], gyro[k], acc[k], None if mag_in is None else mag[k]).copy()
-                      for k in range(dt.size)])
+    first = stepper.run(dt[:1], gyro[:1], acc[:1], None if mag_in is None else mag[:1]).q  # dt[0] = 0: step() needs > 0
+    steps = np.array([first[0]] + [stepper.step(dt[k], gyro[k], acc[k], None if mag_in is None else mag[k]).copy()
+                                   for k in range(1, dt.size)])
     reference = reference_run(form, mode, q0, dt, gyro, acc, mag, beta=0.2)
     assert not run.failed_steps.size
     np.testing.assert_allclose(run.q, steps, atol=1e-15, rtol=0)
@@ -239,10 +240,12 @@ def paper_gyro_only(q0, gyro, dt):
 def test_bad_input_raises_and_keeps_state(compiled):
     q0 = Rotation.from_euler("z", 30, degrees=True).as_quat()
     filt = MargFilter(compiled, "simple", "marg", q0=q0)
-    with pytest.raises(SymkfError, match="DOMAIN"):
+    with pytest.raises(ValueError, match="dt"):
         filt.step(-0.01, [0, 0, 0.1], [0, 0, 1], [1, 0, 0])
-    with pytest.raises(SymkfError, match="NONFINITE"):
+    with pytest.raises(ValueError, match="gyro: contains NaN"):
         filt.step(0.01, [np.nan, 0, 0.1], [0, 0, 1], [1, 0, 0])
+    with pytest.raises(SymkfError, match="NONFINITE"):
+        filt.step(0.01, [0, 0, 0.1], [np.nan, 0, 1], [1, 0, 0])
     with pytest.raises(ValueError, match="gyro"):
         filt.step(0.01, [0, 0.1], [0, 0, 1], [1, 0, 0])
     with pytest.raises(ValueError, match="beta"):
@@ -256,10 +259,15 @@ def test_bad_input_raises_and_keeps_state(compiled):
     with pytest.raises(SymkfError, match="DOMAIN"):
         filt.initialize([0, 0, 1], [0, 0, 5])        # parallel: no heading
     np.testing.assert_array_equal(filt.q, q0)
-    run = filt.run(np.array([0.01, 0.01, -1.0, 0.01]), np.zeros((4, 3)) + [0, 0, 0.1],
-                   np.tile([0, 0, 1.0], (4, 1)), np.tile([1.0, 0, 0], (4, 1)))
-    assert run.status.tolist() == [0, 0, 4, 0]
-    np.testing.assert_array_equal(run.q[2], run.q[1])
+    with pytest.raises(ValueError, match="dt"):
+        filt.run(np.array([0.01, 0.01, -1.0, 0.01]), np.zeros((4, 3)) + [0, 0, 0.1],
+                 np.tile([0, 0, 1.0], (4, 1)), np.tile([1.0, 0, 0], (4, 1)))
+    np.testing.assert_array_equal(filt.q, q0)
+    # the C kernel itself refuses a negative dt (SYMKF_ERR_DOMAIN) and writes nothing
+    buffers = {**filt._buffers, **filt.measurements["marg"]}
+    buffers["dt"][0], buffers["acc"][:], buffers["mag"][:] = -0.01, [0, 0, 1], [1, 0, 0]
+    assert compiled.backend.bind("gd_simple_marg", buffers)() == 4
+    np.testing.assert_array_equal(filt.q, q0)
 
 
 def test_casadi_vm_backend_gives_the_same_numbers(compiled):

@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from symkf.runtime.marg import data_dir
+from symkf.scenarios.marg.data import data_dir
 from symkf.scenarios import cli
 from symkf.scenarios.marg.compare import oscillation
 

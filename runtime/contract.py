@@ -1,0 +1,139 @@
+"""The input contract every filter enforces before it writes a buffer (issue 10).
+
+One function per kind of argument; each returns a clean float64 value or raises ``ValueError``
+naming the argument and what was wrong. Nothing here touches a filter's state.
+
+- real scalars: a number (not a string, bool or array), finite; ``dt`` > 0 (a run's first
+  step may be 0); ``t`` any finite time;
+- arrays: numbers of exactly the declared shape;
+- covariances: P and Q symmetric positive semi-definite, R symmetric positive definite, finite;
+- masks: exactly 0 or 1 everywhere;
+- run times: 1-D, finite, strictly increasing;
+- NaN policy: ``nan="raise"`` (default: a NaN/Inf measurement is an error) or ``nan="mask"``
+  (that component is skipped);
+- dictionaries (R per measurement, options): unknown keys are errors.
+"""
+from __future__ import annotations
+
+import math
+import numbers
+
+import numpy as np
+
+#: Relative tolerance of the symmetry and semi-definiteness checks of a covariance.
+SYMMETRY_RTOL = 1e-9
+PSD_RTOL = 1e-9
+NAN_POLICIES = ("raise", "mask")
+
+
+def real(name: str, value) -> float:
+    """``value`` as a float: a real number (a 0-d numeric array is accepted), never a string."""
+    if type(value) is float:
+        result = value
+    elif isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_)):
+        result = float(value)
+    elif isinstance(value, np.ndarray) and value.shape == () and value.dtype.kind in "fiu":
+        result = float(value)
+    else:
+        raise ValueError(f"{name}: expected a real number, got {type(value).__name__} {value!r:.40}")
+    if not math.isfinite(result):
+        raise ValueError(f"{name}: must be finite, got {result}")
+    return result
+
+
+def time_step(value, allow_zero: bool = False) -> float:
+    """A step length: finite and > 0 (or >= 0 when ``allow_zero``, e.g. a run's first step)."""
+    dt = real("dt", value)
+    if dt < 0 or (dt == 0 and not allow_zero):
+        raise ValueError(f"dt: must be > 0, got {dt}")
+    return dt
+
+
+def as_array(name: str, value, shape: tuple[int, ...]) -> np.ndarray:
+    """``value`` as a float array of exactly ``shape``; ValueError names the argument otherwise."""
+    if isinstance(value, (str, bytes)):
+        raise ValueError(f"{name}: expected numbers of shape {shape}, got {type(value).__name__}")
+    try:
+        array = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: expected numbers of shape {shape}, got {type(value).__name__}") from None
+    if array.shape != shape:
+        raise ValueError(f"{name}: expected shape {shape}, got {array.shape}")
+    return array
+
+
+def exact_array(name: str, value, shape: tuple[int, ...]) -> np.ndarray:
+    """:func:`as_array` with a fast path for a float64 ndarray of the right shape (hot path)."""
+    if type(value) is np.ndarray and value.dtype == np.float64 and value.shape == shape:
+        return value
+    return as_array(name, value, shape)
+
+
+def finite_array(name: str, value, shape: tuple[int, ...]) -> np.ndarray:
+    array = as_array(name, value, shape)
+    if not np.isfinite(array).all():
+        raise ValueError(f"{name}: contains NaN or Inf")
+    return array
+
+
+def covariance(name: str, value, n: int, definite: bool = False) -> np.ndarray:
+    """An n x n covariance: finite, symmetric and positive semi-definite (definite if asked)."""
+    matrix = finite_array(name, value, (n, n))
+    scale = max(float(np.max(np.abs(matrix))), np.finfo(float).tiny)
+    if np.max(np.abs(matrix - matrix.T)) > SYMMETRY_RTOL * scale:
+        raise ValueError(f"{name}: not symmetric")
+    if definite:
+        try:
+            np.linalg.cholesky(matrix)
+        except np.linalg.LinAlgError:
+            raise ValueError(f"{name}: not positive definite") from None
+    elif np.any(np.diag(matrix) < 0) or np.linalg.eigvalsh(matrix)[0] < -PSD_RTOL * scale:
+        raise ValueError(f"{name}: not positive semi-definite")
+    return matrix
+
+
+def mask(value, shape: tuple[int, ...]) -> np.ndarray:
+    """An availability mask: exactly 0 or 1 everywhere."""
+    array = as_array("mask", value, shape)
+    if not np.isin(array, (0.0, 1.0)).all():
+        raise ValueError(f"mask: entries must be exactly 0 or 1, got {np.unique(array).tolist()}")
+    return array
+
+
+def nan_policy(value) -> str:
+    if value not in NAN_POLICIES:
+        raise ValueError(f"nan: expected one of {NAN_POLICIES}, got {value!r}")
+    return value
+
+
+def run_times(times) -> np.ndarray:
+    """Run times: 1-D, finite, strictly increasing."""
+    array = np.asarray(times) if not isinstance(times, (str, bytes)) else None
+    if array is None or array.dtype.kind not in "fiu":
+        raise ValueError(f"times: expected real numbers, got {type(times).__name__}")
+    array = array.astype(float)
+    if array.ndim != 1:
+        raise ValueError(f"times: expected a 1-D array, got shape {array.shape}")
+    if not np.isfinite(array).all():
+        raise ValueError("times: contains NaN or Inf")
+    if np.any(np.diff(array) <= 0):
+        raise ValueError("times: must be strictly increasing")
+    return array
+
+
+def known_keys(name: str, given: dict | None, known) -> dict:
+    """``given`` (or {}) with every key in ``known``; ValueError names the unknown ones."""
+    given = {} if given is None else given
+    if not isinstance(given, dict):
+        raise ValueError(f"{name}: expected a dict keyed by {sorted(known)}, got {type(given).__name__}")
+    unknown = sorted(set(given) - set(known))
+    if unknown:
+        raise ValueError(f"{name}: unknown key(s) {unknown}; expected some of {sorted(known)}")
+    return given
+
+
+def read_only(array: np.ndarray) -> np.ndarray:
+    """A read-only view of a buffer the C code writes (users inspect it, never assign into it)."""
+    view = array.view()
+    view.flags.writeable = False
+    return view

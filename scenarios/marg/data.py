@@ -1,0 +1,111 @@
+"""Recordings for the MARG experiment (paper 001): BROAD trials and the x-io Fusion example CSV.
+
+- :func:`load_recording`: BROAD ``.mat`` trials (Laidig et al. 2021, CC BY 4.0; optical reference)
+  and the x-io Fusion CSV (MIT; no reference), as :class:`Recording`.
+- :func:`run_recording`: a :class:`~symkf.runtime.marg.MargFilter` over a whole recording.
+
+Quaternions are scalar-last ``[x, y, z, w]`` everywhere in the project; BROAD's scalar-first
+``opt_quat`` is converted on loading.
+"""
+from __future__ import annotations
+
+import csv
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from symkf.runtime.filters import RunResult
+
+
+def data_dir() -> Path:
+    """``$SYMKF_DATA_DIR``, else ``../shared/data`` beside a source checkout, else ``./data``."""
+    env = os.environ.get("SYMKF_DATA_DIR")
+    if env:
+        return Path(env)
+    beside_checkout = Path(__file__).resolve().parents[3] / "shared" / "data"
+    return beside_checkout if beside_checkout.is_dir() else Path("data")
+
+
+# ---------------------------------------------------------------------- recordings
+@dataclass
+class Recording:
+    """One recording, arrays per sample; ``reference``/``movement`` are None without ground truth.
+
+    Attributes:
+        time: (N,) s.  dt: (N,) s, ``dt[k] = time[k] - time[k-1]``, ``dt[0] = 0``.
+        gyro: (N, 3) rad/s.  acc: (N, 3) (any unit; only its direction is used).
+        mag: (N, 3) (any unit).  reference: (N, 4) scalar-last, sensor -> ENU, NaN where missing.
+        movement: (N,) bool, the benchmark's movement phases.
+    """
+
+    name: str
+    time: np.ndarray
+    gyro: np.ndarray
+    acc: np.ndarray
+    mag: np.ndarray
+    reference: np.ndarray | None = None
+    movement: np.ndarray | None = None
+    source: str = ""
+
+    @property
+    def dt(self) -> np.ndarray:
+        return np.diff(self.time, prepend=self.time[:1])
+
+    def __len__(self) -> int:
+        return self.time.size
+
+    def head(self, n: int) -> "Recording":
+        """The first ``n`` samples (for quick tests)."""
+        cut = slice(0, n)
+        return Recording(self.name, self.time[cut], self.gyro[cut], self.acc[cut], self.mag[cut],
+                         None if self.reference is None else self.reference[cut],
+                         None if self.movement is None else self.movement[cut], self.source)
+
+
+def load_broad(path: str | Path) -> Recording:
+    """A BROAD trial (MATLAB v5 .mat): 285.714 Hz IMU, optical reference quaternion (ENU, scalar-first)."""
+    from scipy.io import loadmat
+    path = Path(path)
+    data = loadmat(path)
+    rate = float(np.squeeze(data["sampling_rate"]))
+    n = data["imu_gyr"].shape[0]
+    opt = np.asarray(data["opt_quat"], dtype=float)
+    return Recording(path.stem, np.arange(n) / rate, np.asarray(data["imu_gyr"], float),
+                     np.asarray(data["imu_acc"], float), np.asarray(data["imu_mag"], float),
+                     opt[:, [1, 2, 3, 0]], np.asarray(data["movement"]).ravel() == 1,
+                     "BROAD (Laidig et al. 2021, doi:10.3390/data6070072), CC BY 4.0")
+
+
+def load_xio_csv(path: str | Path) -> Recording:
+    """The x-io Fusion example CSV: time (s), gyro (deg/s), accelerometer (g), magnetometer (µT)."""
+    path = Path(path)
+    with open(path, newline="") as handle:
+        reader = csv.reader(handle)
+        header = next(reader)
+        rows = np.array([[float(v) for v in row] for row in reader if row])
+    if rows.ndim != 2 or rows.shape[1] != 10:
+        raise ValueError(f"{path}: expected 10 columns (time, gyro xyz, acc xyz, mag xyz), got header {header}")
+    return Recording(path.stem, rows[:, 0], np.deg2rad(rows[:, 1:4]), rows[:, 4:7], rows[:, 7:10],
+                     source="x-io Technologies Fusion example data, MIT")
+
+
+def load_recording(path: str | Path) -> Recording:
+    """A BROAD ``.mat`` or an x-io ``.csv`` by file suffix."""
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no such recording")
+    if path.suffix == ".mat":
+        return load_broad(path)
+    if path.suffix == ".csv":
+        return load_xio_csv(path)
+    raise ValueError(f"{path}: expected a BROAD .mat or an x-io .csv file")
+
+
+def run_recording(filt, recording: Recording, initialize: bool = True) -> RunResult:
+    """Initialise ``filt`` (a MargFilter) from the first sample (if asked) and filter the whole recording."""
+    mag = recording.mag if filt.mode == "marg" else None
+    if initialize:
+        filt.initialize(recording.acc[0], None if mag is None else mag[0])
+    return filt.run(recording.dt, recording.gyro, recording.acc, mag)
