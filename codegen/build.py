@@ -43,7 +43,7 @@ import tempfile
 import time
 import types
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import casadi as ca
@@ -82,6 +82,9 @@ class BuildResult:
     content_hash: str
     up_to_date: bool
     seconds: float
+    #: Where the time went (s): "model" (execute build() + hash), "generate" (kernels),
+    #: "write" (C text), "compile" (compile + link, cached objects reused).
+    timings: dict = field(default_factory=dict)
 
 
 # ---------------------------------------------------------------------- where builds go
@@ -316,6 +319,7 @@ def build_model(model, force: bool = False, **overrides) -> BuildResult:
     start = time.perf_counter()
     model = get_model(model)
     config = CodegenConfig().with_overrides(**{**model.codegen_defaults, **overrides})
+    timings = {}
     root = private_root()
     directory = root / folder_name(model, config)
     generated = generated_hash(model, config)
@@ -326,6 +330,7 @@ def build_model(model, force: bool = False, **overrides) -> BuildResult:
             return _result(model.name, directory, True, start)
         raise
     key = content_hash(model, config, cc, generated)
+    timings["model"] = time.perf_counter() - start
     if not force and is_up_to_date(directory, key):
         return _result(model.name, directory, True, start)
     with _lock(root, directory.name):
@@ -334,21 +339,26 @@ def build_model(model, force: bool = False, **overrides) -> BuildResult:
         _remove_stale(root, directory.name)
         staging = Path(tempfile.mkdtemp(prefix=f".{directory.name}.tmp-", dir=root))
         try:
+            mark = time.perf_counter()
             bundle = generate(model, config)
+            timings["generate"] = time.perf_counter() - mark
             write_bundle(bundle, staging, key, generated, cc)
-            compile_bundle(staging, model.name, cc, config)
+            timings["write"] = time.perf_counter() - mark - timings["generate"]
+            mark = time.perf_counter()
+            compile_bundle(staging, model.name, cc, config, bundle)
+            timings["compile"] = time.perf_counter() - mark
             _install(staging, directory)
         except BaseException:
             shutil.rmtree(staging, ignore_errors=True)
             raise
-    return _result(model.name, directory, False, start)
+    return _result(model.name, directory, False, start, timings)
 
 
-def _result(name: str, directory: Path, up_to_date: bool, start: float) -> BuildResult:
+def _result(name: str, directory: Path, up_to_date: bool, start: float, timings: dict | None = None) -> BuildResult:
     manifest = read_manifest(directory) or {}
     return BuildResult(name, directory, directory / manifest.get("hashed_library", f"lib{name}.so"),
                        directory / "manifest.json", manifest.get("content_hash", ""), up_to_date,
-                       time.perf_counter() - start)
+                       time.perf_counter() - start, dict(timings or {}))
 
 
 def write_bundle(bundle: Bundle, directory: Path, key: str, generated: str, cc: str) -> None:
@@ -368,19 +378,96 @@ def write_bundle(bundle: Bundle, directory: Path, key: str, generated: str, cc: 
     (directory / "manifest.json").write_text(json.dumps(manifest, indent=1))
 
 
-def compile_bundle(directory: Path, name: str, cc: str, config: CodegenConfig) -> None:
+def compile_bundle(directory: Path, name: str, cc: str, config: CodegenConfig, bundle: Bundle | None = None) -> None:
     """Compile lib<name>.so with the strict flags, copy it to the per-build name Python loads and
-    record that copy's SHA-256 in the manifest."""
-    cmd = cc.split() + c_writer.STRICT_FLAGS.split() + config.optimization.split() + [
-        "-fPIC", "-shared", "-o", f"lib{name}.so", f"{name}.c", "-lm"]
+    record that copy's SHA-256 in the manifest.
+
+    With the bundle at hand the library is compiled from :func:`library_units` in parallel (one
+    compiler per core), each object cached by the hash of its C text, compiler and flags;
+    otherwise from the single ``<name>.c``.
+    """
+    flags = c_writer.STRICT_FLAGS.split() + config.optimization.split() + ["-fPIC"]
+    manifest = json.loads((directory / "manifest.json").read_text())
+    if bundle is None:
+        objects = [_compile_units(directory, cc, flags, {f"{name}.c": None})[0]]
+    else:
+        objects = _compile_units(directory, cc, flags, library_units(bundle, manifest["content_hash"]))
+    cmd = cc.split() + ["-shared", "-o", f"lib{name}.so"] + [o.name for o in objects] + ["-lm"]
     returncode, stderr = run_compiler(cmd, directory)
     if returncode != 0:
-        raise BuildError(f"compiling {name}.c failed ({' '.join(cmd)}):\n{stderr[-4000:]}")
-    manifest = json.loads((directory / "manifest.json").read_text())
+        raise BuildError(f"linking lib{name}.so failed ({' '.join(cmd)}):\n{stderr[-4000:]}")
+    for obj in objects:
+        obj.unlink()
+        if bundle is not None:
+            obj.with_suffix(".c").unlink()
     loaded = f"lib{name}.{manifest['content_hash'][:12]}.{secrets.token_hex(4)}.so"
     shutil.copyfile(directory / f"lib{name}.so", directory / loaded)        # a copy, never a hard link
     manifest.update(hashed_library=loaded, library_sha256=sha256_file(directory / loaded))
     (directory / "manifest.json").write_text(json.dumps(manifest, indent=1))
+
+
+def _kernel_group(kernel: str) -> str:
+    """Kernels compiled together: the model functions, and each filter family (its steps call
+    its predict and updates, which then need not be compiled twice)."""
+    if kernel in ("f", "fd", "jac_fd") or kernel.startswith(("h_", "jac_h_")):
+        return "model"
+    return kernel.split("_")[0]
+
+
+def library_units(bundle: Bundle, key: str) -> dict[str, str]:
+    """The Python library's C translation units: CasADi's code of each kernel group (own prefix
+    for CasADi's internal symbols) and the symkf wrappers with the kernels' prototypes. Together
+    they are the same functions as the single ``<name>.c`` of the flight bundle."""
+    name = bundle.model_name
+    groups: dict[str, list] = {}
+    for kernel in bundle.kernels:
+        groups.setdefault(_kernel_group(kernel.name), []).append(kernel)
+    units = {}
+    for group, kernels in sorted(groups.items()):
+        part = Bundle(name, kernels, bundle.config, bundle.description)
+        units[f"{name}_part_{group}.c"] = (f'#include <tgmath.h>\n#include "{name}.h"\n' +
+                                           c_writer.casadi_source(part, prefix=f"{name}_{group}_casadi"))
+    prototypes = "".join(f"int {k.function.name()}(const casadi_real **arg, casadi_real **res, int *iw, "
+                         "casadi_real *w, int mem);\n" for k in bundle.kernels)
+    units[f"{name}_wrappers.c"] = c_writer.source(bundle, key, prototypes)
+    return units
+
+
+def _compile_units(directory: Path, cc: str, flags: list[str], units: dict[str, str | None]) -> list[Path]:
+    """Write and compile each unit to an object (text None: the file is already there), reusing
+    cached objects; returns the object paths in ``directory``."""
+    cache = directory.parent / ".objects"
+    cache.mkdir(exist_ok=True)
+    identity = json.dumps([compiler_identity(cc), flags])
+    todo, objects = [], []
+    for file, text in units.items():
+        if text is None:
+            text = (directory / file).read_text()
+        else:
+            (directory / file).write_text(text)
+        obj = directory / (file[:-2] + ".o")
+        cached = cache / (hashlib.sha256((identity + text).encode()).hexdigest()[:32] + ".o")
+        objects.append(obj)
+        if cached.is_file():
+            shutil.copyfile(cached, obj)
+        else:
+            todo.append((cc.split() + flags + ["-c", "-o", obj.name, file], obj, cached))
+    for (cmd, _, _), (returncode, stderr) in zip(todo, run_compilers([c for c, _, _ in todo], directory)):
+        if returncode != 0:
+            raise BuildError(f"compiling {cmd[-1]} failed ({' '.join(cmd)}):\n{stderr[-4000:]}")
+    for _, obj, cached in todo:
+        temporary = cached.with_name(f".{cached.name}.{secrets.token_hex(4)}")
+        shutil.copyfile(obj, temporary)
+        os.replace(temporary, cached)
+    _prune(cache, keep=200)
+    return objects
+
+
+def _prune(cache: Path, keep: int) -> None:
+    """Keep the ``keep`` most recently written cached objects."""
+    objects = sorted(cache.glob("*.o"), key=lambda p: p.stat().st_mtime, reverse=True)
+    for path in objects[keep:]:
+        path.unlink(missing_ok=True)
 
 
 #: The compiler runs under a shell that kills its whole process group (cc and its cc1, as, ld)
@@ -396,23 +483,48 @@ def _term_with_parent() -> None:
         pass
 
 
-def run_compiler(cmd: list[str], cwd: Path) -> tuple[int, str]:
-    """Run the compiler in its own process group, killed with the group when this process dies
-    or on any exception here (Ctrl-C)."""
+def _spawn(cmd: list[str], cwd: Path, stderr) -> subprocess.Popen:
     linux = sys.platform.startswith("linux")
-    proc = subprocess.Popen((_GROUP_GUARD if linux else []) + cmd, cwd=cwd, stdout=subprocess.DEVNULL,
-                            stderr=subprocess.PIPE, text=True, start_new_session=True,
+    return subprocess.Popen((_GROUP_GUARD if linux else []) + cmd, cwd=cwd, stdout=subprocess.DEVNULL,
+                            stderr=stderr, start_new_session=True,
                             preexec_fn=_term_with_parent if linux else None)
+
+
+def run_compiler(cmd: list[str], cwd: Path) -> tuple[int, str]:
+    """Run one compiler command (see :func:`run_compilers`)."""
+    return run_compilers([cmd], cwd)[0]
+
+
+def run_compilers(cmds: list[list[str]], cwd: Path, jobs: int | None = None) -> list[tuple[int, str]]:
+    """Run compiler commands, ``jobs`` at a time (default: one per core), each in its own process
+    group that dies with this process; on any exception here (Ctrl-C) every group is killed.
+    Returns (return code, stderr) per command."""
+    jobs = max(1, jobs or os.cpu_count() or 1)
+    pending, running, results = list(enumerate(cmds)), [], {}
     try:
-        _, stderr = proc.communicate()
+        while pending or running:
+            while pending and len(running) < jobs:
+                index, cmd = pending.pop(0)
+                log = tempfile.TemporaryFile(mode="w+")
+                running.append((index, _spawn(cmd, cwd, log), log))
+            for item in list(running):
+                index, proc, log = item
+                if proc.poll() is not None:
+                    log.seek(0)
+                    results[index] = (proc.returncode, log.read())
+                    log.close()
+                    running.remove(item)
+            if running:
+                time.sleep(0.005)
     except BaseException:
-        try:
-            os.killpg(proc.pid, signal.SIGKILL)
-        except OSError:
-            pass
-        proc.wait()
+        for _, proc, _ in running:
+            try:
+                os.killpg(proc.pid, signal.SIGKILL)
+            except OSError:
+                pass
+            proc.wait()
         raise
-    return proc.returncode, stderr
+    return [results[i] for i in range(len(cmds))]
 
 
 def _install(staging: Path, directory: Path) -> None:

@@ -31,10 +31,13 @@ def raw_name(model: str, kernel: Kernel) -> str:
     return kernel.function.name()
 
 
-def casadi_source(bundle: Bundle) -> str:
-    """CasADi's generated code for every kernel, made warning-free under -Wall -Wextra."""
-    gen = ca.CodeGenerator(f"{bundle.model_name}_casadi", {"with_header": False, "include_math": False,
-                                        "casadi_int": "int", "prefix": f"{bundle.model_name}_casadi"})
+def casadi_source(bundle: Bundle, prefix: str | None = None) -> str:
+    """CasADi's generated code for every kernel, made warning-free under -Wall -Wextra.
+    ``prefix`` (default ``<model>_casadi``) names CasADi's internal symbols; codegen/build.py gives
+    each separately compiled part of the Python library its own."""
+    prefix = prefix or f"{bundle.model_name}_casadi"
+    gen = ca.CodeGenerator(prefix, {"with_header": False, "include_math": False,
+                                    "casadi_int": "int", "prefix": prefix})
     for kernel in bundle.kernels:
         gen.add(kernel.function)
     return _typed_literals(_void_unused_parameters(gen.dump()))

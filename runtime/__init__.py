@@ -24,11 +24,13 @@ __all__ = ["CompiledModel", "Filter", "KalmanFilter", "RunResult", "StaleLibrary
 class CompiledModel:
     """A model's kernels, callable from Python, plus its filters (from the manifest's specs)."""
 
-    def __init__(self, name: str, backend, description: dict, filters: list[FilterSpec]):
+    def __init__(self, name: str, backend, description: dict, filters: list[FilterSpec], build=None):
         self.name = name
         self.backend = backend
         self.model = description
         self.filters = {spec.name: spec for spec in filters}
+        #: The BuildResult behind a compiled model (paths, up_to_date, timings); None for the VM.
+        self.build = build
 
     def filter(self, name: str, x0, P0=None, Q=None, **options) -> Filter:
         """The generated filter ``name`` (see ``self.filters``); options as :class:`Filter`."""
@@ -61,7 +63,7 @@ def load(model, backend: str = "auto", **overrides) -> CompiledModel:
             return _vm_model(model, reason=str(exc), **overrides)
         compiled = CompiledBackend.from_directory(result.directory)
         return CompiledModel(model.name, compiled, compiled.manifest["description"],
-                             [FilterSpec.from_dict(f) for f in compiled.manifest["filters"]])
+                             [FilterSpec.from_dict(f) for f in compiled.manifest["filters"]], result)
     return _vm_model(model, reason="", **overrides)
 
 

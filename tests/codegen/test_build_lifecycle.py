@@ -157,7 +157,7 @@ def test_stale_staging_folders_are_cleaned_and_half_written_folder_rebuilt(tmp_p
     (private_build / "tiny" / "manifest.json").write_text('{"content_hash": "trunc')     # a crash mid-write
     result = build_model(str(path))
     assert not result.up_to_date
-    assert sorted(p.name for p in private_build.iterdir()) == [".tiny.lock", "tiny"]
+    assert sorted(p.name for p in private_build.iterdir()) == [".objects", ".tiny.lock", "tiny"]
 
 
 def test_concurrent_builds_of_two_configurations_both_succeed(tmp_path, write_model, private_build):

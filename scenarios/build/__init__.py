@@ -1,0 +1,1 @@
+"""The model author's build loop, timed (`symkf bench build`)."""
