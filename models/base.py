@@ -63,6 +63,25 @@ class Measurement:
         return len(self.outputs)
 
 
+@dataclass(frozen=True)
+class QuaternionState:
+    """A unit quaternion among the states, scalar-last ``[x, y, z, w]``: four consecutive states
+    ``<name>_x .. <name>_w`` of x and three components of the filters' error state (a rotation vector)."""
+
+    name: str
+    description: str
+    index: int          # position of <name>_x in x
+    error_index: int    # position of its 3-vector in the error state
+
+    def as_dict(self) -> dict:
+        return {"name": self.name, "description": self.description, "states": list(range(self.index, self.index + 4)),
+                "error_states": list(range(self.error_index, self.error_index + 3)), "convention": "scalar-last, unit norm"}
+
+
+#: Suffixes of the four states of a quaternion state, scalar-last.
+QUATERNION_SUFFIXES = ("x", "y", "z", "w")
+
+
 @dataclass
 class Model:
     """A vehicle and its sensors, written once as CasADi SX expressions.
@@ -92,6 +111,8 @@ class Model:
     #: Equations (state names, measurement names) where the author allows non-differentiable
     #: operations on states (see :mod:`symkf.models.checks`).
     nondifferentiable_ok: set[str] = field(default_factory=set)
+    #: Unit-quaternion states (:meth:`quaternion_state`), in declaration order.
+    quaternions: list[QuaternionState] = field(default_factory=list)
     _symbols: dict[str, list[ca.SX]] = field(default_factory=lambda: {k: [] for k in "xupw"})
     _pending_q: tuple | None = None
 
@@ -110,6 +131,22 @@ class Model:
     def state(self, name: str, unit: str, description: str) -> ca.SX:
         """Declare a state; returns its scalar symbol."""
         return self._declare("x", self.states, name, unit, description)
+
+    def quaternion_state(self, name: str, description: str) -> ca.SX:
+        """Declare a unit quaternion state (scalar-last ``[x, y, z, w]``, e.g. an attitude); returns
+        its 4x1 symbol. It occupies four states ``<name>_x .. <name>_w`` of x; give its derivative
+        in :meth:`set_dynamics` as one 4-vector under ``name``. Manifold filters (families "mekf",
+        "mukf") keep it on the unit sphere and carry a 3-dim error (a rotation vector) for it."""
+        if not isinstance(name, str) or not name.isidentifier():
+            raise ModelError(f"model '{self.name}': quaternion state name {name!r} is not an identifier")
+        if any(v.name == name for v in self.states) or any(qs.name == name for qs in self.quaternions):
+            raise ModelError(f"model '{self.name}': symbol '{name}' is declared twice")
+        index = self.nx
+        error_index = index - len(self.quaternions)
+        components = [self._declare("x", self.states, f"{name}_{c}", "-", f"{description} ({c} component, "
+                                    "scalar-last unit quaternion)") for c in QUATERNION_SUFFIXES]
+        self.quaternions.append(QuaternionState(name, description, index, error_index))
+        return ca.vertcat(*components)
 
     def input(self, name: str, unit: str, description: str) -> ca.SX:
         """Declare a known input u (a control, or a sensor used as an input)."""
@@ -145,6 +182,11 @@ class Model:
     def nx(self) -> int:
         return len(self.states)
 
+    @property
+    def n_error(self) -> int:
+        """Dimension of the filters' error state: nx minus one per quaternion state."""
+        return self.nx - len(self.quaternions)
+
     def state_names(self) -> list[str]:
         return [v.name for v in self.states]
 
@@ -159,6 +201,7 @@ class Model:
         if not isinstance(derivatives, dict):
             raise ModelError(f"model '{self.name}': set_dynamics() takes a dict {{state name: d/dt expression}}, "
                              f"not a {type(derivatives).__name__}")
+        derivatives = self._expand_quaternions(derivatives)
         names = self.state_names()
         missing = [n for n in names if n not in derivatives]
         extra = [n for n in derivatives if n not in names]
@@ -174,6 +217,20 @@ class Model:
             raise ModelError(f"model '{self.name}': allow_nondifferentiable names {unknown}, which are not states")
         self.nondifferentiable_ok |= set(allowed)
         self._check_free_symbols("dynamics", self.f, extra_allowed=[])
+
+    def _expand_quaternions(self, derivatives: dict) -> dict:
+        """{quaternion name: 4-vector} -> one entry per component state."""
+        expanded = dict(derivatives)
+        for qs in self.quaternions:
+            if qs.name not in expanded:
+                continue
+            value = expanded.pop(qs.name)
+            value = ca.SX(value) if not isinstance(value, ca.SX) else value
+            if value.shape != (4, 1):
+                raise ModelError(f"model '{self.name}': d{qs.name}/dt must be a 4-vector (scalar-last), "
+                                 f"got shape {value.shape}")
+            expanded.update({f"{qs.name}_{c}": value[i] for i, c in enumerate(QUATERNION_SUFFIXES)})
+        return expanded
 
     def measurement_params(self, measurement: str, params: Sequence[tuple[str, str, str]]) -> list[ca.SX]:
         """Declare the runtime parameters of one measurement (before calling :meth:`measurement`)."""
@@ -259,4 +316,6 @@ class Model:
                 m.name: {"outputs": [v.as_dict() for v in m.outputs], "params": [v.as_dict() for v in m.params],
                          "sigma": m.sigma.tolist(), "wrap": list(m.wrap)}
                 for m in self.measurements.values()},
+            **({"quaternions": [qs.as_dict() for qs in self.quaternions], "error_state_dim": self.n_error}
+               if self.quaternions else {}),
         }

@@ -76,6 +76,20 @@ def finite_array(name: str, value, shape: tuple[int, ...]) -> np.ndarray:
     return array
 
 
+#: A state's quaternion must have | |q| - 1 | <= this (as the manifold kernels check, SYMKF_ERR_DOMAIN).
+QUATERNION_NORM_TOLERANCE = 1e-6
+
+
+def unit_quaternions(name: str, x: np.ndarray, quaternions: list[dict]) -> np.ndarray:
+    """``x`` unchanged if every declared quaternion state (manifest ``quaternions``) has unit norm."""
+    for qs in quaternions:
+        norm = float(np.linalg.norm(x[qs["states"]]))
+        if abs(norm - 1) > QUATERNION_NORM_TOLERANCE:
+            raise ValueError(f"{name}: quaternion state '{qs['name']}' (entries {qs['states']}) has norm {norm:.9g}, "
+                             f"expected 1 within {QUATERNION_NORM_TOLERANCE:g} (normalise it)")
+    return x
+
+
 def covariance(name: str, value, n: int, definite: bool = False) -> np.ndarray:
     """An n x n covariance: finite, symmetric and positive semi-definite (definite if asked)."""
     matrix = finite_array(name, value, (n, n))

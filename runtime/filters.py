@@ -162,7 +162,8 @@ class Filter:
 
     @x.setter
     def x(self, value) -> None:
-        self._buffers["x"][:] = contract.finite_array("x", value, self._buffers["x"].shape)
+        x = contract.finite_array("x", value, self._buffers["x"].shape)
+        self._buffers["x"][:] = contract.unit_quaternions("x", x, self.model.get("quaternions", []))
 
     @property
     def P(self) -> np.ndarray:

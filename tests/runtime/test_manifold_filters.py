@@ -1,0 +1,147 @@
+"""Generated manifold filters (MEKF, manifold UKF) of a model with a quaternion and two ordinary
+states: compiled == NumPy reference to round-off, run == steps, |q| = 1 kept, bad input refused."""
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from symkf.models import ModelError, Model
+from symkf.runtime import SymkfError, load
+from symkf.runtime.reference import ManifoldReference, exp_rotvec, hamilton, log_quaternion
+
+SPINNER = Path(__file__).resolve().parents[1] / "codegen" / "spinner_model.py"
+Q0 = np.array([0.1, -0.2, 0.3, 0.9]) / np.linalg.norm([0.1, -0.2, 0.3, 0.9])
+X0 = np.r_[Q0, 0.4, 0.02]
+_SIGMA0 = np.sqrt([0.02, 0.03, 0.05, 0.01, 1e-4])
+P0 = np.outer(_SIGMA0, _SIGMA0) * (0.8 * np.eye(5) + 0.2)          # correlated, positive definite
+QPSD = np.diag([1e-4, 1e-4, 2e-4, 1e-3, 1e-6])
+U = np.array([0.3, -0.2])
+
+
+@pytest.fixture(scope="module")
+def spinner():
+    return load(SPINNER, backend="compiled")
+
+
+def _vectors(q, rng=None):
+    """Gravity and north directions in the body frame for attitude q (+ noise)."""
+    from scipy.spatial.transform import Rotation
+    R_t = Rotation.from_quat(q).as_matrix().T
+    z = np.r_[R_t @ [0, 0, 1.0], R_t @ [1.0, 0, 0]]
+    return z if rng is None else z + rng.normal(0, 0.01, 6)
+
+
+def _assert_close(a, b, rtol=1e-11, what=""):
+    a, b = np.asarray(a), np.asarray(b)
+    scale = max(np.max(np.abs(b)), 1e-300)
+    assert np.max(np.abs(a - b)) <= rtol * scale, f"{what}: max difference {np.max(np.abs(a - b)):.3e}"
+
+
+@pytest.mark.parametrize("family", ["mekf", "mukf"])
+def test_one_step_equals_numpy_reference(spinner, family):
+    compiled = spinner.filter(family, X0, P0, QPSD, kappa=0.5) if family == "mukf" else \
+        spinner.filter(family, X0, P0, QPSD)
+    ref = ManifoldReference(SPINNER, family, X0, P0, QPSD, kappa=0.5)
+    truth = hamilton(Q0, exp_rotvec(np.array([0.05, -0.08, 0.1])))
+    compiled.predict(0.0, 0.02, u=U)
+    ref.predict(0.0, 0.02, u=U)
+    _assert_close(compiled.x, ref.x, what="predict x")
+    _assert_close(compiled.P, ref.P, what="predict P")
+    mask = np.array([1, 1, 1, 0, 1, 1.0])
+    z = _vectors(truth)
+    compiled.update(z, "vectors", mask=mask)
+    ref.update(z, "vectors", 0.02, mask=mask)
+    _assert_close(compiled.x, ref.x, what="update x")
+    _assert_close(compiled.P, ref.P, what="update P")
+    _assert_close(compiled.y("vectors"), ref.y, what="innovation")
+    compiled.step(0.02, 0.02, [0.47], "gyro_z", u=U)
+    ref.step(0.02, 0.02, [0.47], "gyro_z", u=U)
+    _assert_close(compiled.x, ref.x, what="step x")
+    _assert_close(compiled.P, ref.P, what="step P")
+    # the correction really moved the quaternion (the test is not vacuous)
+    assert np.linalg.norm(log_quaternion(hamilton(Q0 * [-1, -1, -1, 1], compiled.x[:4]))) > 0.05
+
+
+def test_manifest_records_quaternion_and_error_dimension(spinner):
+    description = spinner.model
+    assert description["error_state_dim"] == 5
+    assert description["quaternions"][0]["name"] == "q"
+    assert description["quaternions"][0]["states"] == [0, 1, 2, 3]
+    assert spinner.filters["mekf"].algorithm == "manifold_ekf"
+    f = spinner.filter("mukf", X0, P0, QPSD)
+    assert f.P.shape == (5, 5) and f.x.shape == (6,)
+
+
+@pytest.mark.parametrize("family", ["mekf", "mukf"])
+def test_run_equals_steps_and_tracks(spinner, family):
+    rng = np.random.default_rng(4)
+    n = 400
+    times = np.arange(n) * 0.01
+    truth = [Q0]
+    for _ in range(n - 1):
+        truth.append(hamilton(truth[-1], exp_rotvec(np.r_[U, 0.4] * 0.01)))
+    z = np.array([_vectors(q, rng) for q in truth])
+    x_start = np.r_[hamilton(Q0, exp_rotvec([0.2, -0.1, 0.3])), 0.4, 0.0]
+    run_filter = spinner.filter(family, x_start, P0, QPSD)
+    result = run_filter.run(times, z, "vectors", u=U)
+    step_filter = spinner.filter(family, x_start, P0, QPSD)
+    for k in range(n):
+        if k == 0:                                  # the run's first step has dt = 0: an update
+            step_filter.update(z[0], "vectors", u=U)
+        else:
+            step_filter.step(times[k - 1], times[k] - times[k - 1], z[k], "vectors", u=U)
+        np.testing.assert_allclose(result.x[k], step_filter.x, rtol=0, atol=1e-13)
+        np.testing.assert_allclose(result.P[k], step_filter.P, rtol=0, atol=1e-15)
+    error = np.linalg.norm(log_quaternion(hamilton(truth[-1] * [-1, -1, -1, 1], result.x[-1, :4])))
+    assert error < 0.02, f"final attitude error {np.degrees(error):.2f} deg"
+
+
+def test_unit_norm_kept_over_a_million_steps(spinner):
+    """Retraction and reset keep |q| = 1 to 1e-15 in the compiled run loop (10^6 MEKF steps)."""
+    f = spinner.filter("mekf", X0, P0, QPSD)
+    rng = np.random.default_rng(7)
+    chunk, worst, t0 = 100_000, 0.0, 0.0
+    z = 0.42 + rng.normal(0, 0.01, (chunk, 1))     # z gyro: its correction moves q through P's correlations
+    for _ in range(10):
+        times = t0 + 0.01 * np.arange(1, chunk + 1)
+        result = f.run(times, z, "gyro_z", u=U)
+        assert result.failed_steps.size == 0
+        worst = max(worst, float(np.max(np.abs(np.linalg.norm(result.x[:, :4], axis=1) - 1))))
+        t0 = times[-1]
+    assert worst <= 1e-15, worst
+    assert np.linalg.norm(log_quaternion(hamilton(X0[:4] * [-1, -1, -1, 1], f.x[:4]))) > 1.0   # q did move
+
+
+@pytest.mark.parametrize("family", ["mekf", "mukf"])
+def test_bad_input_leaves_state_unchanged(spinner, family):
+    f = spinner.filter(family, X0, P0, QPSD)
+    f.predict(0.0, 0.01, u=U)
+    x, P = f.x.copy(), f.P.copy()
+    with pytest.raises(ValueError, match="quaternion state 'q'.*norm 2"):
+        f.x = np.r_[2 * Q0, 0.4, 0.0]
+    with pytest.raises(SymkfError, match="NONFINITE"):
+        f.update(np.r_[np.nan, np.zeros(5)], "vectors")
+    with pytest.raises(ValueError, match="P: expected shape"):
+        f.P = np.eye(6)
+    np.testing.assert_array_equal(f.x, x)
+    np.testing.assert_array_equal(f.P, P)
+    assert f.update(np.r_[np.nan, np.zeros(5)], "vectors", mask=np.r_[0, np.ones(5)]) == 0   # masked NaN is fine
+
+
+def test_non_unit_quaternion_is_a_domain_error_in_c(spinner):
+    """The C kernel checks |q| itself (a flight caller has no Python contract)."""
+    f = spinner.filter("mekf", X0, P0, QPSD)
+    f.kernel_buffer("x")[:4] = 1.1 * Q0
+    with pytest.raises(SymkfError, match="DOMAIN"):
+        f.predict(0.0, 0.01, u=U)
+    np.testing.assert_array_equal(f.x[:4], 1.1 * Q0)
+
+
+def test_quaternion_state_declaration_errors():
+    m = Model("bad", "x")
+    q = m.quaternion_state("q", "attitude")
+    with pytest.raises(ModelError, match="declared twice"):
+        m.quaternion_state("q", "again")
+    with pytest.raises(ModelError, match="must be a 4-vector"):
+        m.set_dynamics({"q": q[0:3]})
+    assert m.nx == 4 and m.n_error == 3
