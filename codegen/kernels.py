@@ -16,13 +16,14 @@ A failed factorisation returns a status code and the inputs x, P unchanged.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Callable
 
 import casadi as ca
 
 from symkf.models.base import Model
 from . import linalg
-from .discretize import FUNCTION_OPTIONS, continuous_dynamics, discrete_dynamics, measurement_function
+from .discretize import FUNCTION_OPTIONS, INTEGRATORS, continuous_dynamics, discrete_dynamics, measurement_function
 from .spec import STATUS_GATED, STATUS_NONFINITE, STATUS_NOT_PD, Arg, CodegenConfig, Family, FilterSpec, Kernel
 
 
@@ -71,31 +72,76 @@ class Symbols:
         return sym, args
 
 
+#: How a filter family discretises the model (codegen config keys ``<family>_<field>``; the
+#: defaults are the model's: RK4 with ``rk4_substeps``, exact Jacobian, events split).
+COVARIANCE_PROPAGATIONS = ("jacobian", "linear")
+
+
+@dataclass(frozen=True)
+class Discretisation:
+    """One filter family's discretisation of the dynamics.
+
+    Attributes:
+        integrator: "rk4" or "euler" for the state propagation x(t + dt) = f_d(t, dt, x).
+        substeps: integrator sub-steps per filter step.
+        covariance: "jacobian" (F = d f_d / d x, exact for the discrete map) or "linear"
+            (Phi = I + A dt with A = d f / d x at the step start, the classical first-order form).
+        split_events: cut a step at the model's events (codegen/discretize.py).
+    """
+
+    integrator: str = "rk4"
+    substeps: int = 1
+    covariance: str = "jacobian"
+    split_events: bool = True
+
+    @classmethod
+    def for_family(cls, config: CodegenConfig, family: str) -> "Discretisation":
+        """The config's ``<family>_integrator/_substeps/_covariance/_split_events`` over its defaults."""
+        base = cls(substeps=config.rk4_substeps, split_events=bool(config.get("split_events", True)))
+        chosen = cls(**{name: config.get(f"{family}_{name}", getattr(base, name))
+                        for name in cls.__dataclass_fields__})
+        if chosen.integrator not in INTEGRATORS or chosen.covariance not in COVARIANCE_PROPAGATIONS:
+            raise ValueError(f"{family}: integrator must be one of {INTEGRATORS} and covariance one of "
+                             f"{COVARIANCE_PROPAGATIONS}; got '{chosen.integrator}', '{chosen.covariance}'")
+        if int(chosen.substeps) != chosen.substeps or chosen.substeps < 1:
+            raise ValueError(f"{family}: substeps must be an integer >= 1, got {chosen.substeps}")
+        return chosen
+
+    @property
+    def suffix(self) -> str:
+        """A C-safe tag naming this discretisation (e.g. '_euler1_lin')."""
+        return (f"_{self.integrator}{self.substeps}" + ("_lin" if self.covariance == "linear" else "")
+                + ("" if self.split_events else "_nosplit"))
+
+
+@dataclass(frozen=True)
+class Propagation:
+    """A family's propagation functions: f_d (called and inlined), its transition matrix, both."""
+
+    fd: ca.Function
+    fd_inline: ca.Function
+    jac_fd: ca.Function
+    fd_and_jac: ca.Function
+
+
 class ModelFunctions:
     """The model's own functions, each generated once in C and *called* by the filter kernels.
 
     f_d, its Jacobian, h and its Jacobian are CasADi SX functions marked ``never_inline``: a UKF
     calls f_d 2n+1 times without 2n+1 copies of its code, which keeps the C small and fast to
-    compile.
+    compile. A family whose configured :class:`Discretisation` differs from the model's default
+    gets its own f_d variant from :meth:`for_filter`.
     """
 
     def __init__(self, model: Model, config: CodegenConfig):
-        self.config = config
+        self.config, self.model = config, model
         prefix = model.name
         options = dict(FUNCTION_OPTIONS, never_inline=True)
         self.zero_w = ca.DM.zeros(len(model.noises))
-        fd = discrete_dynamics(model, config.rk4_substeps)
-        t, dt, x, u, p, w = fd.sx_in()
-        x_next = fd(t, dt, x, u, p, self.zero_w)
-        args, names = [t, dt, x, u, p], ["t", "dt", "x", "u", "p"]
-        self.fd = ca.Function(f"{prefix}_fd", args, [x_next], names, ["x"], options)
-        # inlined where it is called: the UKF's 2n+1 calls then share every term that depends
-        # on time only (thrust, mass, guidance), which CSE evaluates once per step
-        self.fd_inline = ca.Function(f"{prefix}_fd_inline", args, [x_next], names, ["x"], FUNCTION_OPTIONS)
-        F = ca.densify(ca.jacobian(x_next, x))
-        self.jac_fd = ca.Function(f"{prefix}_jac_fd", args, [F], names, ["F"], options)
-        # f_d and F together share the primal evaluation (the EKF prediction needs both)
-        self.fd_and_jac = ca.Function(f"{prefix}_fd_and_jac", args, [x_next, F], names, ["x", "F"], options)
+        default = Discretisation(substeps=config.rk4_substeps, split_events=bool(config.get("split_events", True)))
+        self._propagations: dict[Discretisation, Propagation] = {}
+        main = self._propagation(default, "")
+        self.fd, self.fd_inline, self.jac_fd, self.fd_and_jac = main.fd, main.fd_inline, main.jac_fd, main.fd_and_jac
         self.noise_gain = noise_gain(model) if model.noises else None
         self.h, self.jac_h = {}, {}
         for name in model.measurements:
@@ -106,6 +152,36 @@ class ModelFunctions:
             self.h[name] = ca.Function(f"{prefix}_h_{name}", hargs, [z], hnames, ["z"], options)
             self.jac_h[name] = ca.Function(f"{prefix}_jac_h_{name}", hargs, [ca.densify(ca.jacobian(z, hx))],
                                            hnames, ["H"], options)
+
+    def for_filter(self, family: str) -> Propagation:
+        """The propagation functions of one family, per the config's ``<family>_*`` keys."""
+        chosen = Discretisation.for_family(self.config, family)
+        return self._propagation(chosen, chosen.suffix)
+
+    def _propagation(self, d: Discretisation, suffix: str) -> Propagation:
+        if d in self._propagations:
+            return self._propagations[d]
+        model, prefix = self.model, self.model.name + suffix
+        options = dict(FUNCTION_OPTIONS, never_inline=True)
+        fd = discrete_dynamics(model, int(d.substeps), d.integrator, d.split_events)
+        t, dt, x, u, p, w = fd.sx_in()
+        x_next = fd(t, dt, x, u, p, self.zero_w)
+        args, names = [t, dt, x, u, p], ["t", "dt", "x", "u", "p"]
+        if d.covariance == "jacobian":
+            F = ca.densify(ca.jacobian(x_next, x))
+        else:   # Phi = I + A dt, A = df/dx at (t, x)
+            xdot = continuous_dynamics(model)(t, x, u, p, self.zero_w)
+            F = ca.SX.eye(model.nx) + ca.densify(ca.jacobian(xdot, x)) * dt
+        # fd_inline is inlined where it is called: the UKF's 2n+1 calls then share every term that
+        # depends on time only (thrust, mass, guidance), which CSE evaluates once per step;
+        # f_d and F together share the primal evaluation (the EKF prediction needs both)
+        made = Propagation(
+            ca.Function(f"{prefix}_fd", args, [x_next], names, ["x"], options),
+            ca.Function(f"{prefix}_fd_inline", args, [x_next], names, ["x"], FUNCTION_OPTIONS),
+            ca.Function(f"{prefix}_jac_fd", args, [F], names, ["F"], options),
+            ca.Function(f"{prefix}_fd_and_jac", args, [x_next, F], names, ["x", "F"], options))
+        self._propagations[d] = made
+        return made
 
 
 def noise_gain(model: Model) -> ca.Function:

@@ -103,6 +103,10 @@ class Model:
     f: ca.SX | None = None
     #: Names of the filter families codegen should generate for this model ("ekf", "ukf", ...).
     filters: tuple[str, ...] = ("ekf", "ukf")
+    #: Known switching times (s) at which the dynamics jump (staging, ignition, burnout). The
+    #: model's schedule is right-continuous (f at t_e is the after-event f); integrators split a
+    #: step at an event so that no step straddles one (codegen/discretize.py).
+    events: tuple[float, ...] = ()
     #: Codegen settings the model author wants by default (e.g. {"rk4_substeps": 2}).
     codegen_defaults: dict = field(default_factory=dict)
     #: Stand-alone model functions to export besides the filters ("f", "fd", "jac_fd", "h",
@@ -296,6 +300,9 @@ class Model:
             raise ModelError(f"model '{self.name}': set_dynamics() was never called")
         if not self.states:
             raise ModelError(f"model '{self.name}': no states declared")
+        events = np.asarray(self.events, dtype=float)
+        if not np.all(np.isfinite(events)) or np.any(np.diff(events) <= 0):
+            raise ModelError(f"model '{self.name}': events must be finite and strictly increasing, got {self.events}")
         from . import checks
         checks.check_equations(self)
         checks.check_unused(self)
@@ -312,6 +319,7 @@ class Model:
             "inputs": [v.as_dict() for v in self.inputs],
             "params": [dict(v.as_dict(), default=d) for v, d in zip(self.params, self.param_defaults)],
             "noises": [v.as_dict() for v in self.noises],
+            "events": [float(e) for e in self.events],
             "measurements": {
                 m.name: {"outputs": [v.as_dict() for v in m.outputs], "params": [v.as_dict() for v in m.params],
                          "sigma": m.sigma.tolist(), "wrap": list(m.wrap)}

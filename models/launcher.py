@@ -252,6 +252,8 @@ def build() -> Model:
         ("elevation", "rad", "elevation above the station's horizontal, eq (7)", elevation),
         ("azimuth", "rad", "azimuth from North, clockwise, eq (7)", azimuth)],
         sigma=RADAR_SIGMA, wrap=(False, False, True))
+    # Table 2's switches of thrust, mass and area: no integrator step straddles one
+    m.events = (T_STAGE1_BURNOUT, T_FAIRING, T_STAGE2_IGNITION, T_INSERTION)
     m.codegen_defaults = {"rk4_substeps": 1}
     return m
 

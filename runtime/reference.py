@@ -26,11 +26,12 @@ class ReferenceFilter:
     """EKF ("ekf") or UKF ("ukf") in plain NumPy, same conventions as the compiled filters."""
 
     def __init__(self, model_name: str, family: str, x0, P0, Q, R: dict | None = None, p=None,
-                 kappa: float = 0.0):
+                 kappa: float = 0.0, **overrides):
         if family not in ("ekf", "ukf"):
             raise ValueError("family: expected 'ekf' or 'ukf'")
         model = get_model(model_name)
-        self.functions = ModelFunctions(model, make_config(model_name))
+        self.functions = ModelFunctions(model, make_config(model_name, **overrides))
+        self.propagation = self.functions.for_filter(family)     # the family's discretisation
         self.family, self.kappa = family, float(kappa)
         self.x, self.P, self.Q = np.array(x0, float), np.array(P0, float), np.array(Q, float)
         self.p = np.array(model.param_defaults if p is None else p, float)
@@ -42,7 +43,7 @@ class ReferenceFilter:
 
     # ---------------------------------------------------------------- model calls
     def _fd(self, t, dt, x):
-        return np.array(self.functions.fd(t, dt, x, self.u, self.p)).ravel()
+        return np.array(self.propagation.fd(t, dt, x, self.u, self.p)).ravel()
 
     def _h(self, name, t, x, q):
         return np.array(self.functions.h[name](t, x, self.u, self.p, q)).ravel()
@@ -51,7 +52,7 @@ class ReferenceFilter:
     def predict(self, t: float, dt: float) -> None:
         noise = self.process_noise(t, dt)
         if self.family == "ekf":
-            F = np.array(self.functions.jac_fd(t, dt, self.x, self.u, self.p))
+            F = np.array(self.propagation.jac_fd(t, dt, self.x, self.u, self.p))
             self.x = self._fd(t, dt, self.x)
             self.P = _sym(F @ self.P @ F.T + noise)
             return

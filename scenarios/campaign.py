@@ -46,20 +46,23 @@ def run_rng(seed: int, *key: int) -> np.random.Generator:
 
 @dataclass(frozen=True)
 class ModelKey:
-    """A compiled model named by its content hash (what a worker needs to find or build it)."""
+    """A compiled model named by its content hash (what a worker needs to find or build it) and
+    the codegen overrides of its configuration (sorted (key, value) pairs; () for the defaults)."""
 
     name: str
     content_hash: str
+    overrides: tuple = ()
 
 
 _MODELS: dict[ModelKey, Any] = {}
 _MODELS_LOCK = threading.Lock()
 
 
-def model_key(name: str) -> ModelKey:
-    """Build (if stale) and load ``name`` here; return the key tasks carry to the workers."""
-    model = _load(name)
-    key = ModelKey(name, _content_hash(model))
+def model_key(name: str, **overrides) -> ModelKey:
+    """Build (if stale) and load ``name`` with codegen ``overrides`` here; return the key tasks
+    carry to the workers."""
+    model = _load(name, **overrides)
+    key = ModelKey(name, _content_hash(model), tuple(sorted(overrides.items())))
     with _MODELS_LOCK:
         _MODELS.setdefault(key, model)
     return key
@@ -74,7 +77,7 @@ def compiled_model(key: ModelKey):
         return model
     with _MODELS_LOCK:
         if key not in _MODELS:
-            model = _load(key.name)
+            model = _load(key.name, **dict(key.overrides))
             found = _content_hash(model)
             if found != key.content_hash:
                 raise RuntimeError(
@@ -84,9 +87,9 @@ def compiled_model(key: ModelKey):
         return _MODELS[key]
 
 
-def _load(name: str):
+def _load(name: str, **overrides):
     from symkf.runtime import load
-    return load(name)
+    return load(name, **overrides)
 
 
 def _content_hash(model) -> str:

@@ -61,7 +61,7 @@ def _predict_doc(model: Model, name: str, detail: str) -> str:
 # ---------------------------------------------------------------------- EKF
 def ekf_predict_expr(symbols: Symbols, fns: ModelFunctions, x, P, t, dt, Q):
     s = symbols.sym
-    x_next, F = fns.fd_and_jac(t, dt, x, s["u"], s["p"])
+    x_next, F = fns.for_filter("ekf").fd_and_jac(t, dt, x, s["u"], s["p"])
     return x_next, linalg.symmetrize(F @ P @ F.T + process_noise(symbols, fns, Q, x, t, dt))
 
 
@@ -149,7 +149,8 @@ def _angle_difference(a: ca.SX, b: ca.SX, wrap: tuple[bool, ...]) -> ca.SX:
 def ukf_predict_expr(symbols: Symbols, fns: ModelFunctions, x, P, t, dt, Q):
     s = symbols.sym
     points, weights, ok = sigma_points(x, P, s["kappa"])
-    propagated = [fns.fd_inline(t, dt, pt, s["u"], s["p"]) for pt in points]
+    fd = fns.for_filter("ukf").fd_inline
+    propagated = [fd(t, dt, pt, s["u"], s["p"]) for pt in points]
     x_pred = _weighted_mean(propagated, weights)
     P_pred = sum((w * (pt - x_pred) @ (pt - x_pred).T for w, pt in zip(weights, propagated)),
                  ca.SX.zeros(P.shape)) + process_noise(symbols, fns, Q, x, t, dt)

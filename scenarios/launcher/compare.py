@@ -18,7 +18,7 @@ import numpy as np
 from symkf.models import launcher as L
 from . import campaign as C
 from symkf.scenarios.campaign import ProgressBar, add_scheduler_arguments, scheduler_problem
-from .campaign import FILTERS, STATE_NAMES, TUNING, Campaign, CaseResult, consistency
+from .campaign import FILTERS, PRESETS, STATE_NAMES, TUNING, Campaign, CaseResult, consistency
 
 UNITS = dict(zip(STATE_NAMES, L.TABLE3_UNITS))
 EVENT_LINES = ((L.T_STAGE1_BURNOUT, "staging"), (L.T_STAGE2_IGNITION, "2nd ignition"),
@@ -29,53 +29,79 @@ def add_arguments(parser) -> None:
     parser.add_argument("--runs", type=int, default=100, help="Monte Carlo runs per case (default 100)")
     parser.add_argument("--seed", type=int, default=2005, help="random seed (default 2005)")
     parser.add_argument("--rates", default="20,10", help="radar rates in Hz, comma-separated (default 20,10)")
-    parser.add_argument("--out", default="results/launcher", help="output folder (default results/launcher)")
+    parser.add_argument("--out", default=None,
+                        help="output folder (default results/launcher, results/launcher-paper-like for that preset)")
+    parser.add_argument("--filters", default="correct", choices=sorted(PRESETS),
+                        help="filter configuration: 'correct' (RK4 split at events, exact Jacobian, Q from the "
+                             "model's neglected terms; default) or 'paper-like' (EKF Euler + Phi = I + A dt, "
+                             "UKF RK4, events integrated across: the best reading of what the paper ran)")
     parser.add_argument("--duration", type=float, default=L.T_INSERTION,
                         help=f"seconds of flight to filter (default {L.T_INSERTION}, the whole flight)")
     parser.add_argument("--kappa", type=float, default=TUNING["kappa"],
                         help=f"UKF sigma-point scaling, n + kappa > 0 (default {TUNING['kappa']})")
     parser.add_argument("--q-scale", type=float, default=1.0,
-                        help="multiply the process-noise density Q by this factor (default 1)")
+                        help="multiply the preset's process-noise density Q by this factor (default 1)")
+    parser.add_argument("--ekf-q-scale", type=float, default=1.0, help="multiply the EKF's Q only (default 1)")
+    parser.add_argument("--ukf-q-scale", type=float, default=1.0, help="multiply the UKF's Q only (default 1)")
+    parser.add_argument("--p0-floor", default=None,
+                        help="six comma-separated floors of the initial standard deviations (m/s, rad, rad, m, "
+                             "rad, rad; default: the preset's)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar, no table")
     add_scheduler_arguments(parser)
 
 
 def run(args) -> int:
-    rates = tuple(int(r) for r in str(args.rates).split(",") if r.strip())
+    try:
+        rates = tuple(int(r) for r in str(args.rates).split(",") if r.strip())
+        tuning = tuning_from_args(args)
+    except ValueError as exc:
+        print(f"symkf compare launcher: {exc}", file=sys.stderr)
+        return 2
     bad = [r for r in rates if r not in L.RADAR_RATES_HZ]
-    if bad or args.runs < 1 or not 0 < args.duration <= L.T_INSERTION or args.kappa <= -6 or args.q_scale <= 0:
+    scales = (args.q_scale, args.ekf_q_scale, args.ukf_q_scale)
+    if bad or not rates or args.runs < 1 or not 0 < args.duration <= L.T_INSERTION or not args.kappa > -6 \
+            or not all(s > 0 and np.isfinite(s) for s in scales):
         print(f"symkf compare launcher: rates must be among {L.RADAR_RATES_HZ}, runs >= 1, "
-              f"0 < duration <= {L.T_INSERTION}, kappa > -6 and q-scale > 0", file=sys.stderr)
+              f"0 < duration <= {L.T_INSERTION}, kappa > -6 and every q-scale > 0", file=sys.stderr)
         return 2
     problem = scheduler_problem(args.scheduler, args.workers)
     if problem:
         print(f"symkf compare launcher: {problem}", file=sys.stderr)
         return 2
-    tuning = {"kappa": args.kappa, "Q": TUNING["Q"] * args.q_scale}
     progress = None if args.quiet else ProgressBar()
     start = time.perf_counter()
     campaign = Campaign(args.runs, args.seed, rates, args.duration, workers=args.workers, progress=progress,
-                        tuning=tuning, scheduler=args.scheduler)
+                        tuning=tuning, scheduler=args.scheduler, preset=args.filters)
     results = campaign.run()
     wall = time.perf_counter() - start
-    out = Path(args.out)
+    out = Path(args.out or ("results/launcher" if args.filters == "correct" else f"results/launcher-{args.filters}"))
     out.mkdir(parents=True, exist_ok=True)
     rows = table_rows(results)
     write_csv(out / "rms_table.csv", rows)
-    (out / "rms_table.md").write_text(markdown_table(results, rows))
-    summary = make_summary(results, args, wall, campaign.tuning)
+    (out / "rms_table.md").write_text(f"Filters: {args.filters}\n\n" + markdown_table(results, rows))
+    summary = make_summary(results, args, wall, campaign)
     (out / "summary.json").write_text(json.dumps(summary, indent=1))
     plot_rms(results, 0, "V", "Speed error RMS (m/s)", out / "fig_velocity_rms.png")
     plot_rms(results, 3, "r", "Radius error RMS (m)", out / "fig_radius_rms.png")
     plot_nees(results, out / "fig_nees.png")
     if not args.quiet:
-        print("\n" + markdown_table(results, rows))
+        print(f"\nFilters: {args.filters}\n" + markdown_table(results, rows))
+        print(f"  mean |log10(ours/paper)| over Table 3's {summary['table3_cells']} cells: "
+              f"{summary['mean_abs_log10_vs_paper']:.3f}")
+        for label, case in summary["cases"].items():
+            print(f"  {label}: average NEES inside its 95 % band (outside {C.EVENT_WINDOW_S:g} s after events) "
+                  + ", ".join(f"{f.upper()} {_percent(case[f]['fraction_inside_band_outside_event_windows'])}"
+                              for f in FILTERS))
         for claim, value in summary["claims"].items():
             if isinstance(value, bool):
                 print(f"  {claim}: {value}")
         print(f"  ukf_le_ekf_every_state: {summary['claims']['ukf_le_ekf_every_state']}")
         print(f"wrote {out}/ in {wall:.1f} s ({campaign.stats.executor}, {campaign.stats.workers} workers)")
     return 0
+
+
+def _percent(value) -> str:
+    return "n/a (no time outside the windows)" if value is None else f"{value:.0%}"
 
 
 # ---------------------------------------------------------------------- tables
@@ -121,7 +147,32 @@ def markdown_table(results: list[CaseResult], rows: list[dict]) -> str:
 
 
 # ---------------------------------------------------------------------- summary and claims
-def make_summary(results: list[CaseResult], args, wall: float, tuning: dict) -> dict:
+def classify(result: CaseResult, family: str, run: int) -> str:
+    """'diverged', 'excursion' or 'ok' for one run (wrapped angle errors, campaign.outcome)."""
+    if run in result.diverged_runs[family]:
+        return "diverged"
+    return "excursion" if run in result.excursion_runs[family] else "ok"
+
+
+def tuning_from_args(args) -> dict:
+    """The preset's tuning with the command line's knobs applied (raises ValueError on bad input)."""
+    base = PRESETS[args.filters]["tuning"]
+    tuning = {"kappa": args.kappa, "Q": base["Q"] * args.q_scale,
+              "ekf_q_scale": args.ekf_q_scale, "ukf_q_scale": args.ukf_q_scale}
+    if args.p0_floor is not None:
+        floor = np.array([float(v) for v in str(args.p0_floor).split(",")])
+        if floor.shape != (6,) or not np.all(np.isfinite(floor) & (floor > 0)):
+            raise ValueError(f"--p0-floor needs six positive numbers, got '{args.p0_floor}'")
+        tuning["P0_floor"] = floor
+    return tuning
+
+
+def mean_abs_log10_vs_paper(rows: list[dict]) -> float:
+    """Mean over Table 3's cells (state x case x filter) of |log10(ours / paper)|."""
+    return float(np.mean([abs(np.log10(row[f] / row[f"paper_{f}"])) for row in rows for f in FILTERS]))
+
+
+def make_summary(results: list[CaseResult], args, wall: float, campaign: Campaign) -> dict:
     cases = {}
     for result in results:
         entry = {}
@@ -135,11 +186,15 @@ def make_summary(results: list[CaseResult], args, wall: float, tuning: dict) -> 
                 "failed_steps": result.failed_steps[family],
                 "diverged_runs": result.diverged_runs[family],
                 "excursion_runs": result.excursion_runs[family],
+                "run_classification": [classify(result, family, run) for run in range(result.errors[family].runs)],
                 "rms_eq11_without_diverged_runs": dict(zip(STATE_NAMES, result.whole_flight(family, True).tolist())),
             }
         cases[result.case.label] = entry
+    rows = table_rows(results)
     return {"runs": args.runs, "seed": args.seed, "duration_s": args.duration, "wall_s": wall,
-            "units": UNITS, "tuning": {k: np.asarray(v).tolist() for k, v in tuning.items()},
+            "filters": campaign.preset, "codegen": campaign.codegen, "units": UNITS,
+            "tuning": {k: np.asarray(v).tolist() for k, v in campaign.tuning.items()},
+            "mean_abs_log10_vs_paper": mean_abs_log10_vs_paper(rows), "table3_cells": 2 * len(rows),
             "cases": cases, "claims": claims(results)}
 
 

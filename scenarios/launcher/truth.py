@@ -1,11 +1,13 @@
 """Truth trajectory of the KSLV-I launcher (paper 004, section 3.1) and its radar data (eq 7).
 
 The truth integrates the *model's own* dynamics ``f`` (models/launcher.py, eq (6)) with CVODES
-(adaptive, rtol 1e-11), one integration per flight phase of Table 2, so the thrust, mass and
-fairing switches fall exactly on phase boundaries; the filters use fixed-step RK4 at the radar
-rate — the truth is integrated much finer than the filter step, as the paper's setup requires.
-Within a phase the model is evaluated with its time argument held strictly inside the phase
-(by 1 microsecond at the ends), which selects the phase's thrust and mass; nothing is restated.
+(adaptive, rtol 1e-11), one integration per flight phase between the model's declared events
+(``Model.events``: Table 2's switches), so the thrust, mass and fairing switches fall exactly on
+phase boundaries; the filters use fixed-step RK4 at the radar rate, split at the same events
+(codegen/discretize.py) — the truth is integrated much finer than the filter step, as the paper's
+setup requires. Within a phase the model is evaluated with its time argument held strictly inside
+the phase (by EVENT_INSET = 1 microsecond at the ends), which selects the phase's thrust and
+mass; nothing is restated.
 """
 from __future__ import annotations
 
@@ -15,14 +17,14 @@ from functools import lru_cache
 import casadi as ca
 import numpy as np
 
-from symkf.codegen.discretize import continuous_dynamics, measurement_function
+from symkf.codegen.discretize import EVENT_INSET, continuous_dynamics, measurement_function
 from symkf.models import get_model
 from symkf.models import launcher as L
 from symkf.runtime.reference import wrap_angle
 
-#: Phase boundaries of Table 2 (s).
-PHASES = (0.0, L.T_STAGE1_BURNOUT, L.T_FAIRING, L.T_STAGE2_IGNITION, L.T_INSERTION)
-_INSIDE = 1e-6   # s: how far inside a phase the schedule is evaluated at its ends
+#: Phase boundaries (s): lift-off and the model's events (Table 2).
+PHASES = (0.0,) + tuple(get_model("launcher").events)
+_INSIDE = EVENT_INSET   # s: how far inside a phase the schedule is evaluated at its ends
 TRUTH_TOLERANCES = {"abstol": 1e-9, "reltol": 1e-11, "max_num_steps": 200000}
 
 

@@ -56,6 +56,38 @@ def test_tuning_options_reach_the_filters(tmp_path, launcher_compiled):
     assert main(["compare", "launcher", "--kappa", "-6", "--quiet", "--out", str(tmp_path)]) == 2
 
 
+@pytest.mark.parametrize("bad", [["--p0-floor", "1,2,3"], ["--p0-floor", "1,1,1,1,1,-1"], ["--p0-floor", "a,b"],
+                                 ["--ekf-q-scale", "0"], ["--ukf-q-scale", "nan"], ["--rates", "15"],
+                                 ["--rates", ","]])
+def test_bad_knobs_are_refused_before_any_work(tmp_path, bad, capsys):
+    assert main(["compare", "launcher", "--quiet", "--out", str(tmp_path / "x"), *bad]) == 2
+    assert "symkf compare launcher:" in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()
+
+
+def test_per_filter_knobs_reach_one_filter_only(tmp_path, launcher_compiled):
+    assert main(["compare", "launcher", "--runs", "1", "--duration", "5", "--rates", "20", "--ekf-q-scale", "1e6",
+                 "--p0-floor", "2,1e-4,1e-4,100,1e-5,1e-5", "--out", str(tmp_path), "--quiet"]) == 0
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["filters"] == "correct" and summary["tuning"]["ekf_q_scale"] == 1e6
+    assert summary["tuning"]["P0_floor"][0] == 2.0
+    small = summary["cases"]["20Hz small"]
+    assert small["ekf"]["rms_eq11"]["V"] != small["ukf"]["rms_eq11"]["V"]   # the filters now differ
+    assert small["ekf"]["run_classification"] == ["ok"]
+    assert small["ekf"]["fraction_inside_band_outside_event_windows"] is None   # 5 s: all in the lift-off window
+
+
+def test_summary_reports_distance_to_paper_and_consistency(short_campaign):
+    summary = json.loads((short_campaign / "summary.json").read_text())
+    rows = list(csv.DictReader(open(short_campaign / "rms_table.csv")))
+    expected = np.mean([abs(np.log10(float(r[f]) / float(r["paper_" + f]))) for r in rows for f in ("ekf", "ukf")])
+    assert summary["mean_abs_log10_vs_paper"] == pytest.approx(expected) and summary["table3_cells"] == 48
+    for case in summary["cases"].values():
+        for family in ("ekf", "ukf"):
+            assert 0 <= case[family]["fraction_inside_band_outside_event_windows"] <= 1
+            assert len(case[family]["run_classification"]) == 3
+
+
 def test_same_seed_same_draws_different_seed_different_draws(launcher_compiled):
     track = C.radar_track(np.arange(5) * 0.05, C.propagate(np.arange(5) * 0.05))
     one, same, other = C.Campaign(1, 11), C.Campaign(1, 11, rates=(20,)), C.Campaign(1, 12)

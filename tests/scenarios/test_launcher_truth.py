@@ -41,3 +41,15 @@ def test_truth_integrator_is_converged():
     coarse = propagate(np.array([100.0, L.T_INSERTION]))[-1]
     fine = propagate(np.arange(0, 434.3, 0.05).tolist() + [L.T_INSERTION])[-1]
     np.testing.assert_allclose(coarse, fine, rtol=1e-9, atol=1e-10)
+
+
+def test_default_q_comes_from_the_model_neglected_terms():
+    """campaign.NEGLECTED_TERMS_Q is 10 x the filter step's mean-square defect against the truth
+    (per second) at 10 Hz, the larger of the two radar rates (rounded up)."""
+    from symkf.scenarios.launcher import campaign as C
+    stored = np.diag(C.NEGLECTED_TERMS_Q)
+    at_10, at_20 = np.diag(C.neglected_terms_q(10)), np.diag(C.neglected_terms_q(20))
+    assert np.all(at_20 < at_10)                        # the coarser step makes the larger error
+    np.testing.assert_allclose(stored / at_10, 10, rtol=0.03)
+    unsplit = np.diag(C.neglected_terms_q(10, split_events=False))
+    assert unsplit[0] > 1e6 * at_10[0]                  # straddling staging: metres per second
