@@ -462,7 +462,8 @@ class Filter:
         if n_steps:
             for n in self.spec.state:
                 self._buffers[n][...] = histories[n][-1].T
-            self.t = float(per_step["t"][-1] + per_step["dt"][-1]) if "t" in per_step else self.t
+            self.t = float(per_step["t"][-1] + per_step["dt"][-1]) if "t" in per_step else \
+                self.t + float(np.sum(per_step["dt"]))
         P = np.transpose(histories["P"], (0, 2, 1)) if "P" in histories else None
         return RunResult(histories["x"], P, status)
 

@@ -158,8 +158,10 @@ def _call(function: ca.Function, *args) -> np.ndarray:
 
 
 def _unit_or_zero(v: np.ndarray) -> tuple[np.ndarray, bool]:
-    norm = np.linalg.norm(v)
-    return (v / norm, True) if norm > ZERO_NORM else (np.zeros(3), False)
+    largest = np.max(np.abs(v))
+    scaled = v / largest if largest > 0 else v
+    norm = np.linalg.norm(scaled)
+    return (scaled / norm, True) if largest * norm > ZERO_NORM else (np.zeros(3), False)
 
 
 def reference_direction(q: np.ndarray, acc: np.ndarray, mag: np.ndarray | None) -> np.ndarray:

@@ -68,10 +68,13 @@ def marg_functions() -> dict[str, ca.Function]:
 
 
 def unit_or_zero(v: ca.SX) -> tuple[ca.SX, ca.SX]:
-    """(v/|v|, 1) for a usable sample, (0, 0) for a zero-norm one (never NaN)."""
-    norm = ca.norm_2(v)
-    ok = norm > ZERO_NORM
-    return v / select(ok, norm, 1), ok
+    """(v/|v|, 1) for a usable sample, (0, 0) for a zero-norm one (never NaN). The norm is taken
+    of v scaled by its largest component, so a huge finite sample cannot overflow to Inf."""
+    largest = ca.fmax(ca.fabs(v[0]), ca.fmax(ca.fabs(v[1]), ca.fabs(v[2])))
+    scaled = v / select(largest > 0, largest, 1)
+    norm = ca.norm_2(scaled)
+    ok = largest * norm > ZERO_NORM
+    return scaled / select(ok, norm, 1), ok
 
 
 def correction_direction(q: ca.SX, acc: ca.SX, mag: ca.SX | None) -> tuple[ca.SX, ca.SX]:

@@ -6,7 +6,7 @@ from scipy.spatial.transform import Rotation
 
 from symkf.codegen.discretize import discrete_dynamics
 from symkf.codegen.families import quaternion_filters as family
-from symkf.codegen.spec import STATUS_DOMAIN, STATUS_NONFINITE
+from symkf.codegen.spec import STATUS_DOMAIN
 from symkf.models import attitude as att
 from symkf.models import get_model
 from symkf.runtime import SymkfError, load
@@ -153,35 +153,6 @@ def test_predict_update_equals_step(compiled, kind):
 
 
 @pytest.mark.parametrize("kind", ["mekf", "ukf", "aukf"])
-def test_compiled_run_equals_steps(compiled, kind):
-    truth, q0 = initial_quaternion(4)
-    omega, stars = gyro_and_star_sequence(truth, 40)
-    stepped = AttitudeFilter(compiled, kind, q0, np.zeros(3), P0)
-    history = []
-    for w, q_s in zip(omega, stars):
-        stepped.step(w, 0.25, q_s)
-        history.append(stepped.x.copy())
-    runner = AttitudeFilter(compiled, kind, q0, np.zeros(3), P0)
-    z = np.array([np.full(4, np.nan) if s is None else s for s in stars])
-    result = runner.run(omega, 0.25, z)
-    assert not result.failed_steps.size
-    assert np.abs(result.x - np.array(history)).max() == 0.0
-    assert np.abs(runner.P - stepped.P).max() == 0.0
-
-
-def test_virtual_machine_backend_equals_compiled(compiled):
-    """Without a C compiler the same kernels run in CasADi's VM (run loop in Python): same numbers."""
-    vm = load("attitude", backend="casadi-vm")
-    truth, q0 = initial_quaternion(9)
-    omega, stars = gyro_and_star_sequence(truth, 8)
-    z = np.array([np.full(4, np.nan) if s is None else s for s in stars])
-    for kind in ("mekf", "ukf", "aukf"):
-        a = AttitudeFilter(compiled, kind, q0, np.zeros(3), P0).run(omega, 0.25, z)
-        b = AttitudeFilter(vm, kind, q0, np.zeros(3), P0).run(omega, 0.25, z)
-        assert np.abs(a.x - b.x).max() < 1e-14 and np.abs(a.P - b.P).max() < 1e-17
-
-
-@pytest.mark.parametrize("kind", ["mekf", "ukf", "aukf"])
 def test_quaternion_norm_stays_unit(compiled, kind):
     """A 20 000-step run (about 1.4 h at 0.25 s, star tracker every 1 s); the report gives 10^6 steps."""
     truth0, q0 = initial_quaternion(5, error_deg=1.0)
@@ -226,24 +197,6 @@ def test_eq41_guard_is_a_domain_error(compiled, kind):
     with pytest.raises(SymkfError) as info:
         ReferenceAttitudeFilter(kind, q0, np.zeros(3), P_large).step(np.zeros(3), 0.25, None)
     assert info.value.code == STATUS_DOMAIN
-
-
-@pytest.mark.parametrize("kind", ["mekf", "ukf", "aukf"])
-def test_nan_star_tracker_is_rejected_state_unchanged(compiled, kind):
-    truth, q0 = initial_quaternion()
-    filt = AttitudeFilter(compiled, kind, q0, np.zeros(3), P0)
-    x_before, P_before = filt.x.copy(), filt.P.copy()
-    with pytest.raises(SymkfError, match="NONFINITE.*components") as info:
-        filt.step(np.zeros(3), 0.25, [np.nan, 0, 0, 1])
-    assert info.value.code == STATUS_NONFINITE
-    assert np.array_equal(filt.x, x_before) and np.array_equal(filt.P, P_before)
-    # the C kernel itself reports NaN as a code and writes nothing
-    buffers = {**filt._buffers, **filt.measurements["star_tracker"]}
-    buffers["z"][:] = [np.nan, 0, 0, 1]
-    buffers["mask"][0] = 1.0
-    buffers["dt"][0] = 0.25
-    assert compiled.backend.bind(f"{kind}_step_star_tracker", buffers)() == STATUS_NONFINITE
-    assert np.array_equal(filt.x, x_before) and np.array_equal(filt.P, P_before)
 
 
 @pytest.mark.parametrize("kind", ["mekf", "ukf"])

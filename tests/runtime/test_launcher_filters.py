@@ -48,24 +48,6 @@ def test_compiled_step_equals_numpy_reference(launcher_compiled, flight, family)
     assert np.all(np.abs(compiled.x - truth[-1]) < 5 * np.sqrt(np.diag(compiled.P)) + [1, 1e-3, 1e-3, 1, 1e-6, 1e-6])
 
 
-@pytest.mark.parametrize("family", ["ekf", "ukf"])
-def test_compiled_run_equals_compiled_steps(launcher_compiled, flight, family):
-    times, truth, z, q = flight
-    x0 = truth[0] + np.array([1.0, 1e-8, 1e-8, 100.0, 0, 0])
-    stepped = launcher_compiled.filter(family, x0, P0, Q)
-    history = []
-    stepped.run(times[:1], z[:1], q=q[:1])          # the run's first step (dt = 0; step() needs dt > 0)
-    history.append(stepped.x.copy())
-    for k in range(1, len(times)):
-        stepped.step(times[k - 1], times[k] - times[k - 1], z[k], q=q[k])
-        history.append(stepped.x.copy())
-    whole = launcher_compiled.filter(family, x0, P0, Q)
-    result = whole.run(times, z, q=q)
-    assert not result.status.any()
-    np.testing.assert_array_equal(result.x, np.array(history))
-    np.testing.assert_array_equal(whole.P, stepped.P)
-
-
 def test_derived_jacobians_match_central_differences():
     """F = df_d/dx and H = dh/dx, compared in scaled units (state errors of ~[100 m/s, 0.01 rad,
     0.01 rad, 1 km, 1e-4 rad, 1e-4 rad]) so that every entry counts."""

@@ -1,0 +1,580 @@
+"""One contract for every model x every filter (issue 10).
+
+For each of the ten generated filters (launcher EKF/UKF, geo continuous-discrete EKF, attitude
+MEKF/UKF/augmented UKF, four gradient-descent MARG forms):
+
+- compiled == CasADi for every generated function of every bundle;
+- compiled == NumPy reference; run == steps (bit for bit); CasADi VM == compiled;
+- every class of bad input raises a clear error and leaves x, P and t bit-identical;
+- a Hypothesis property over launcher EKF/UKF and MARG steps: either an error with the state
+  unchanged, or a finite result with P symmetric positive semi-definite.
+"""
+from __future__ import annotations
+
+import ctypes
+from dataclasses import dataclass, field
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from symkf.codegen import generate
+from symkf.codegen.spec import STATUS_GATED, STATUS_NONFINITE, STATUS_NOT_PD
+from symkf.models import attitude as A
+from symkf.models import geo_satellite as G
+from symkf.models import get_model
+from symkf.models import launcher as L
+from symkf.runtime import Filter, SymkfError, load
+from symkf.runtime.attitude import ReferenceAttitudeFilter
+from symkf.runtime.marg import MargFilter, reference_step
+from symkf.runtime.reference import NumpyCDEKF, ReferenceFilter
+
+N_STEPS = 6
+
+
+# ---------------------------------------------------------------------- the ten filters
+@dataclass
+class Case:
+    """One filter of one model with a short valid input record (``inputs(k)`` for step k >= 1)."""
+
+    model: str
+    name: str
+    x0: np.ndarray
+    P0: np.ndarray | None = None
+    Q: np.ndarray | None = None
+    measurement: str = ""
+    options: dict = field(default_factory=dict)
+
+    @property
+    def id(self) -> str:
+        return f"{self.model}-{self.name}"
+
+    @property
+    def marg(self) -> bool:
+        return self.model == "marg"
+
+    def make(self, compiled):
+        if self.marg:
+            form, mode = self.name.split("_")[1:]
+            return MargFilter(compiled, form, mode, beta=0.1, alpha=2.0, q0=self.x0)
+        return Filter(compiled, self.name, self.x0, self.P0, self.Q, **self.options)
+
+    def inputs(self, k: int) -> dict:
+        rng = np.random.default_rng(k)
+        dt = 0.05
+        if self.model == "launcher":
+            t = 10.0 + k * dt
+            return dict(t=t - dt, dt=dt, z=launcher_radar(k) + rng.normal(0, [10, 1e-4, 1e-4]),
+                        q=L.station_params(1), u=None)
+        if self.model == "geo_satellite":
+            return dict(t=(k - 1) * 0.125, dt=0.125, z=1e-4 * rng.standard_normal(4), q=None,
+                        u=np.array([0.3, -0.1, 0.2, 0.05]))
+        if self.model == "attitude":
+            q_s = self.x0[:4] + 1e-3 * rng.standard_normal(4)
+            return dict(t=(k - 1) * 0.25, dt=0.25, z=q_s / np.linalg.norm(q_s), q=None,
+                        u=np.array([1e-3, -2e-3, 5e-4]))
+        acc = np.array([0.1, -0.2, 9.8]) + 0.05 * rng.standard_normal(3)
+        mag = np.array([20.0, 1.0, -40.0]) + rng.standard_normal(3)
+        return dict(t=None, dt=0.01, z=acc, mag=mag, q=None, u=np.array([0.01, -0.02, 0.3]))
+
+
+_LAUNCHER_TRUTH: dict[int, np.ndarray] = {}
+
+
+def launcher_radar(k: int) -> np.ndarray:
+    """Radar 1's noise-free measurement of the launcher's state at 10 + 0.05 k s (the model's f_d, h)."""
+    if not _LAUNCHER_TRUTH:
+        ref = ReferenceFilter("launcher", "ekf", L.initial_state(), np.eye(6), np.eye(6))
+        truth = [L.initial_state()]
+        for j in range(1, 40):
+            truth.append(ref._fd(10.0 + 0.05 * (j - 1), 0.05, truth[-1]))
+        _LAUNCHER_TRUTH.update({j: ref._h("radar", 10.0 + 0.05 * j, x, L.station_params(1)) for j, x in enumerate(truth)})
+    return _LAUNCHER_TRUTH[k]
+
+
+def _launcher_cases():
+    x0 = L.initial_state() + np.array([5.0, 1e-4, 1e-4, 500.0, 1e-6, 1e-6])
+    P0 = np.diag([10.0, 1e-3, 1e-3, 1e3, 1e-5, 1e-5]) ** 2
+    Q = np.diag([1.0, 1e-8, 1e-8, 1.0, 1e-14, 1e-14])
+    return [Case("launcher", "ekf", x0, P0, Q, "radar"), Case("launcher", "ukf", x0, P0, Q, "radar", {"kappa": 0.0})]
+
+
+def _geo_cases():
+    tune = G.filter_tuning()
+    x0 = G.initial_errors(G.TABLE6) + np.r_[np.zeros(3), 1e-3 * np.ones(3), np.zeros(11)]
+    return [Case("geo_satellite", "cd_ekf", x0, tune["P0"], tune["Q"], "gyro", {"R": tune["R"]})]
+
+
+def _attitude_cases():
+    q0 = np.array([0.1, -0.2, 0.3, 0.9])
+    x0 = np.r_[q0 / np.linalg.norm(q0), 1e-5, -2e-5, 1e-5]
+    P0 = np.diag([1e-4] * 3 + [1e-10] * 3)
+    Q = A.process_noise_psd()
+    R = {"star_tracker": A.star_tracker_covariance()}
+    return [Case("attitude", kind, x0, P0, Q, "star_tracker", dict({"R": R}, **({} if kind == "mekf" else {"kappa": 1.0})))
+            for kind in ("mekf", "ukf", "aukf")]
+
+
+def _marg_cases():
+    q0 = np.array([0.0, 0.0, np.sin(0.1), np.cos(0.1)])
+    return [Case("marg", f"gd_{form}_{mode}", q0, measurement=mode) for form in ("simple", "full") for mode in ("imu", "marg")]
+
+
+CASES = _launcher_cases() + _geo_cases() + _attitude_cases() + _marg_cases()
+MODELS = ("launcher", "geo_satellite", "attitude", "marg")
+
+
+@pytest.fixture(scope="module")
+def compiled():
+    return {name: load(name, backend="compiled") for name in MODELS}
+
+
+@pytest.fixture(scope="module")
+def vm():
+    return {name: load(name, backend="casadi-vm") for name in MODELS}
+
+
+def step(case: Case, f, k: int, **override):
+    """One valid step k (arguments overridden as given)."""
+    a = {**case.inputs(k), **override}
+    if case.marg:
+        mag = a.get("mag") if case.measurement == "marg" else None
+        return f.step(a["dt"], a["u"], a["z"], mag, **({"nan": a["nan"]} if "nan" in a else {}))
+    extra = {key: a[key] for key in ("mask", "nan") if key in a}
+    return f.step(a["t"], a["dt"], a["z"], measurement=case.measurement, q=a["q"], u=a["u"], **extra)
+
+
+def run(case: Case, f, n: int, first: int = 1, **override):
+    """Steps first .. first + n - 1 as one run (its first step has dt = 0)."""
+    rows = [{**case.inputs(k), **override} for k in range(first, first + n)]
+    if case.marg:
+        dt = np.array([0.0] + [r["dt"] for r in rows[1:]])
+        mag = np.array([r["mag"] for r in rows]) if case.measurement == "marg" else None
+        return f.run(dt, np.array([r["u"] for r in rows]), np.array([r["z"] for r in rows]), mag)
+    times = run_times(case, n, first)
+    z = np.array([r["z"] for r in rows])
+    q = None if rows[0]["q"] is None else np.array([r["q"] for r in rows])
+    u = None if rows[0]["u"] is None else np.array([r["u"] for r in rows])
+    if case.model == "attitude":       # Q/dt: every step of an attitude run has dt > 0
+        per_step = {"t": np.array([r["t"] for r in rows]), "dt": np.array([r["dt"] for r in rows])}
+        per_step.update(f._run_series(case.measurement, n, {"z": z, "mask": None}, u, "raise"))
+        return f._run(case.measurement, per_step, n)
+    return f.run(times, z, measurement=case.measurement, q=q, u=u)
+
+
+def run_times(case: Case, n: int, first: int = 1) -> np.ndarray:
+    rows = [case.inputs(k) for k in range(first, first + n)]
+    return np.array([r["t"] + r["dt"] if r["t"] is not None else 0.0 for r in rows])
+
+
+def snapshot(f):
+    return (f.x.copy(), None if "P" not in f._buffers else f.P.copy(), f.t)
+
+
+def assert_unchanged(f, before):
+    x, P, t = before
+    assert np.array_equal(f.x, x)
+    if P is not None:
+        assert np.array_equal(f.P, P)
+    assert f.t == t
+
+
+# ---------------------------------------------------------------------- compiled == CasADi
+def _kernel_inputs(kernel, case: Case, rng) -> dict:
+    """Valid inputs for any kernel of the case's model (shape-driven, SPD covariances)."""
+    a = case.inputs(1)
+    values = {}
+    for arg in kernel.inputs:
+        n, m = arg.shape
+        name = arg.name
+        if n * m == 0:
+            values[name] = np.zeros((n, m))
+        elif name == "x" and case.x0.size == n:
+            values[name] = case.x0
+        elif name in ("P", "Q", "R"):
+            B = rng.normal(size=(n, n)) * 0.1
+            base = case.P0 if name == "P" and case.P0 is not None and case.P0.shape == (n, n) else np.eye(n)
+            d = np.sqrt(np.diag(base))
+            values[name] = base + np.diag(d) @ (B @ B.T) @ np.diag(d) * 0.1
+        elif name in ("t", "dt"):
+            values[name] = np.array([0.05 if name == "dt" else 1.0])
+        elif name == "q" and a.get("q") is not None:
+            values[name] = a["q"]
+        elif name == "z" and np.size(a["z"]) == n:
+            values[name] = a["z"]
+        elif name == "acc":
+            values[name] = a["z"]
+        elif name == "mag":
+            values[name] = a.get("mag", np.ones(3))
+        elif name == "u" and a.get("u") is not None and np.size(a["u"]) == n:
+            values[name] = a["u"]
+        elif name == "mask":
+            values[name] = np.ones(n)
+        elif name == "gate":
+            values[name] = np.zeros(n)
+        elif name == "kappa":
+            values[name] = np.array([1.0])
+        elif name == "p":
+            values[name] = np.array([v["default"] for v in get_model(case.model).describe()["params"]])
+            values[name] = values[name] if values[name].size == n else np.full(n, 0.1)
+        elif name in ("quaternions", "q_ref", "q") and n == 4:
+            v = rng.normal(size=(4, m if name == "quaternions" else 1))
+            values[name] = v / np.linalg.norm(v, axis=0)
+        elif name == "weights":
+            values[name] = np.full(n, 1.0 / n)
+        else:
+            values[name] = rng.normal(size=(n, m)) * 0.1
+    return values
+
+
+@pytest.mark.parametrize("model", MODELS)
+def test_every_generated_function_equals_casadi(compiled, model):
+    """Every kernel of every bundle, called through its C wrapper, equals CasADi's evaluation."""
+    bundle = generate(model)
+    case = next(c for c in CASES if c.model == model)
+    backend, rng = compiled[model].backend, np.random.default_rng(7)
+    for kernel in bundle.kernels:
+        inputs = _kernel_inputs(kernel, case, rng)
+        expected = kernel.function.call([np.reshape(inputs[a.name], a.shape, order="F") for a in kernel.inputs])
+        ins = [np.asfortranarray(np.reshape(inputs[a.name], a.shape, order="F"), dtype=float) for a in kernel.inputs]
+        outs = [np.zeros(a.shape, order="F") for a in kernel.outputs[:-1]]
+        fn = getattr(backend.lib, f"{model}_{kernel.name}")
+        fn.restype, fn.argtypes = ctypes.c_int, [ctypes.c_void_p] * (len(ins) + len(outs))
+        code = fn(*[a.ctypes.data for a in ins + outs])
+        status = int(expected[-1])
+        assert code == status or (status == 0 and code == STATUS_NONFINITE), kernel.name
+        if code not in (0, STATUS_GATED):
+            continue
+        for arg, got, want in zip(kernel.outputs[:-1], outs, expected[:-1]):
+            want = np.asarray(want)
+            scale = max(float(np.max(np.abs(want))), 1e-300)
+            rel = np.max(np.abs(got - want) / np.maximum(np.abs(want), 1e-3 * scale))
+            assert rel <= 1e-11, f"{model}_{kernel.name}.{arg.name}: relative error {rel:.2e}"
+
+
+# ---------------------------------------------------------------------- three paths agree
+def _reference_states(case: Case) -> list[np.ndarray]:
+    """The NumPy reference over steps 1..N_STEPS (the same inputs as :func:`step`)."""
+    out = []
+    if case.marg:
+        form, mode = case.name.split("_")[1:]
+        q = case.x0.copy()
+        for k in range(1, N_STEPS + 1):
+            a = case.inputs(k)
+            q = reference_step(form, q, a["dt"], a["u"], a["z"], a["mag"] if mode == "marg" else None, 0.1, 2.0)
+            out.append(q)
+        return out
+    if case.model == "attitude":
+        R = case.options["R"]["star_tracker"]
+        ref = ReferenceAttitudeFilter(case.name, case.x0[:4], case.x0[4:], case.P0, case.Q, R,
+                                      kappa=case.options.get("kappa", 1.0))
+        for k in range(1, N_STEPS + 1):
+            a = case.inputs(k)
+            ref.step(a["u"], a["dt"], a["z"])
+            out.append(ref.x.copy())
+        return out
+    if case.model == "geo_satellite":
+        ref = NumpyCDEKF(get_model("geo_satellite"), case.x0, case.P0, case.Q, case.options["R"])
+        for k in range(1, N_STEPS + 1):
+            a = case.inputs(k)
+            ref.predict(a["t"], a["dt"], u=a["u"])
+            ref.update(a["z"], measurement=case.measurement)
+            out.append(ref.x.copy())
+        return out
+    ref = ReferenceFilter("launcher", case.name, case.x0, case.P0, case.Q, **case.options)
+    for k in range(1, N_STEPS + 1):
+        a = case.inputs(k)
+        ref.step(a["t"], a["dt"], a["z"], "radar", a["q"])
+        out.append(ref.x.copy())
+    return out
+
+
+@pytest.mark.parametrize("case", CASES, ids=lambda c: c.id)
+def test_compiled_equals_numpy_reference(compiled, case):
+    """Errors in units of the filter's own standard deviation (absolute for quaternion states)."""
+    f = case.make(compiled[case.model])
+    states, scales = [], []
+    for k in range(1, N_STEPS + 1):
+        step(case, f, k)
+        states.append(f.x.copy())
+        has_P = "P" in f._buffers and f.P.shape[0] == f.x.size
+        scales.append(np.sqrt(np.diag(f.P)) if has_P else np.ones(f.x.size))
+    reference = np.array(_reference_states(case))
+    error = np.max(np.abs(np.array(states) - reference) / np.array(scales))
+    assert error < {"ukf": 1e-6}.get(case.name if case.model == "launcher" else "", 1e-8), error
+
+
+@pytest.mark.parametrize("case", CASES, ids=lambda c: c.id)
+def test_run_equals_steps(compiled, case):
+    """One run over N steps == a run over its first step (dt = 0) then N - 1 step() calls, bit for bit."""
+    whole, stepped = case.make(compiled[case.model]), case.make(compiled[case.model])
+    result = run(case, whole, N_STEPS)
+    history = [run(case, stepped, 1).x[0]]
+    times = run_times(case, N_STEPS)
+    for k in range(2, N_STEPS + 1):
+        same = {} if case.model in ("attitude", "marg") else {"t": times[k - 2], "dt": times[k - 1] - times[k - 2]}
+        step(case, stepped, k, **same)
+        history.append(stepped.x.copy())
+    assert not result.failed_steps.size
+    np.testing.assert_array_equal(result.x, np.array(history))
+    assert_unchanged(whole, snapshot(stepped))
+
+
+@pytest.mark.parametrize("case", CASES, ids=lambda c: c.id)
+def test_vm_equals_compiled(compiled, vm, case):
+    a, b = case.make(compiled[case.model]), case.make(vm[case.model])
+    for k in range(1, N_STEPS + 1):
+        step(case, a, k)
+        step(case, b, k)
+    np.testing.assert_allclose(b.x, a.x, rtol=1e-12, atol=1e-14)
+    runs = run(case, case.make(compiled[case.model]), 3).x, run(case, case.make(vm[case.model]), 3).x
+    np.testing.assert_allclose(runs[1], runs[0], rtol=1e-12, atol=1e-14)
+
+
+# ---------------------------------------------------------------------- bad inputs
+def _bad_step_inputs(case: Case) -> dict[str, dict]:
+    """Input classes of the issue's matrix that apply to step(), as argument overrides."""
+    a = case.inputs(1)
+    z = np.asarray(a["z"])
+    bad = {"dt negative": {"dt": -a["dt"]}, "dt zero": {"dt": 0.0}, "dt NaN": {"dt": np.nan},
+           "dt Inf": {"dt": np.inf}, "dt string": {"dt": "0.05"}, "dt array": {"dt": np.array([0.05, 0.05])},
+           "z NaN": {"z": np.where(np.arange(z.size) == 0, np.nan, z)}, "z Inf": {"z": np.where(np.arange(z.size) == 0, np.inf, z)},
+           "z short": {"z": z[:-1]}, "z column": {"z": z[:, None]}, "z string": {"z": "abc"},
+           "u NaN": {"u": np.full(3 if case.marg or case.model == "attitude" else 4, np.nan)} if a["u"] is not None else None,
+           "u shape": {"u": np.zeros(7)}, "nan policy": {"nan": "ignore"}}
+    if not case.marg:
+        bad.update({"t NaN": {"t": np.nan}, "t string": {"t": "now"}})
+        m = 1 if case.model == "attitude" else z.size
+        bad.update({"mask 0.5": {"mask": np.full(m, 0.5)}, "mask 2": {"mask": np.full(m, 2.0)},
+                    "mask NaN": {"mask": np.full(m, np.nan)}, "mask shape": {"mask": np.ones(m + 1)}})
+    if a["q"] is not None:
+        bad.update({"q missing": {"q": None}, "q NaN": {"q": np.full(np.size(a["q"]), np.nan)},
+                    "q shape": {"q": np.zeros(np.size(a["q"]) + 1)}})
+    if case.marg:
+        bad.update({"gyro huge": {"u": np.full(3, 1e308)}, "acc NaN": {"z": np.array([np.nan, 0, 9.8])}})
+        if case.measurement == "marg":
+            bad["mag NaN"] = {"mag": np.array([np.nan, 0.0, 1.0])}
+    return {k: v for k, v in bad.items() if v is not None}
+
+
+def _bad_settings(case: Case) -> dict[str, tuple[str, object]]:
+    """Bad values for settable state (attribute, value)."""
+    n = case.x0.size
+    bad = {"x NaN": ("x", np.full(n, np.nan)), "x shape": ("x", np.zeros(n + 1)), "x string": ("x", "x")}
+    if case.P0 is not None:
+        m = case.P0.shape[0]
+        asym = np.array(case.P0, dtype=float)
+        asym[0, 1] += np.sqrt(asym[0, 0] * asym[1, 1])
+        bad.update({"P indefinite": ("P", -case.P0), "P negative variance": ("P", np.diag(np.r_[-1.0, np.ones(m - 1)])),
+                    "P asymmetric": ("P", asym), "P NaN": ("P", np.full((m, m), np.nan)),
+                    "Q indefinite": ("Q", -np.eye(case.Q.shape[0])), "Q NaN": ("Q", np.full(case.Q.shape, np.nan)),
+                    "Q asymmetric": ("Q", np.triu(np.ones(case.Q.shape)) + case.Q.shape[0] * np.eye(case.Q.shape[0]))})
+    return bad
+
+
+@pytest.mark.parametrize("case", CASES, ids=lambda c: c.id)
+def test_bad_step_inputs_raise_and_leave_state_bit_identical(compiled, case):
+    f = case.make(compiled[case.model])
+    step(case, f, 1)
+    failures = []
+    for label, override in _bad_step_inputs(case).items():
+        before = snapshot(f)
+        try:
+            step(case, f, 2, **override)
+            failures.append(f"{label}: accepted")
+        except (ValueError, SymkfError):
+            pass
+        try:
+            assert_unchanged(f, before)
+        except AssertionError:
+            failures.append(f"{label}: state changed")
+    assert not failures, failures
+
+
+@pytest.mark.parametrize("case", CASES, ids=lambda c: c.id)
+def test_bad_settings_raise_and_leave_state_bit_identical(compiled, case):
+    f = case.make(compiled[case.model])
+    step(case, f, 1)
+    for label, (attribute, value) in _bad_settings(case).items():
+        before = snapshot(f)
+        with pytest.raises(ValueError):
+            setattr(f, attribute, value)
+        assert_unchanged(f, before)
+
+
+@pytest.mark.parametrize("case", [c for c in CASES if not c.marg], ids=lambda c: c.id)
+def test_bad_noise_and_options_are_refused(compiled, case):
+    model = compiled[case.model]
+    m = model.model["measurements"][case.measurement]
+    size = len(m["outputs"]) if case.model != "attitude" else 3
+    R = dict(case.options.get("R", {}))
+    for bad_R in (-np.eye(size), np.zeros((size, size)), np.full((size, size), np.nan)):
+        with pytest.raises(ValueError, match="R"):
+            Filter(model, case.name, case.x0, case.P0, case.Q, **{**case.options, "R": {**R, case.measurement: bad_R}})
+    with pytest.raises(ValueError, match="unknown key"):
+        Filter(model, case.name, case.x0, case.P0, case.Q, **{**case.options, "R": {**R, case.measurement + "x": np.eye(size)}})
+    with pytest.raises(ValueError, match="unknown key"):
+        Filter(model, case.name, case.x0, case.P0, case.Q, **{**case.options, "kapa": 1.0})
+
+
+@pytest.mark.parametrize("case", CASES, ids=lambda c: c.id)
+def test_bad_run_inputs_raise_and_leave_state_bit_identical(compiled, case):
+    f = case.make(compiled[case.model])
+    step(case, f, 1)
+    before = snapshot(f)
+    if case.marg:
+        n = 4
+        a = case.inputs(1)
+        good = dict(dt=np.full(n, 0.01), gyro=np.tile(a["u"], (n, 1)), acc=np.tile(a["z"], (n, 1)),
+                    mag=np.tile(a["mag"], (n, 1)) if case.measurement == "marg" else None)
+        bad = [dict(dt=np.array([0.01, -0.01, 0.01, 0.01])), dict(dt=np.array([0.01, np.nan, 0.01, 0.01])),
+               dict(dt="0.01"), dict(gyro=np.full((n, 3), np.nan)), dict(gyro=np.zeros((n, 2))),
+               dict(acc=np.vstack([np.full((1, 3), np.nan), good["acc"][1:]]))]
+        for override in bad:
+            with pytest.raises(ValueError):
+                f.run(**{**good, **override})
+            assert_unchanged(f, before)
+        return
+    a = case.inputs(1)
+    times = a["t"] + a["dt"] * np.arange(1, 5)
+    z = np.tile(a["z"], (4, 1))
+    m = 1 if case.model == "attitude" else z.shape[1]
+    common = dict(measurement=case.measurement, q=a["q"], u=None if a["u"] is None else np.tile(a["u"], (4, 1)))
+    bad = [dict(times=times[:, None]), dict(times=times[::-1]), dict(times=np.r_[times[:2], times[1], times[3]]),
+           dict(times=np.r_[times[:3], np.nan]), dict(times="abc"), dict(z=np.vstack([z[:1] * np.nan, z[1:]])),
+           dict(z=z[:, :-1]), dict(mask=np.full((4, m), 0.5)), dict(mask=np.full((4, m), 2.0)), dict(nan="skip")]
+    if a["q"] is not None:
+        bad.append(dict(q=None))
+    if a["u"] is not None:
+        bad.append(dict(u=np.full((4, np.size(a["u"])), np.nan)))
+    for override in bad:
+        args = {"times": times, "z": z, **common, **override}
+        with pytest.raises(ValueError):
+            Filter.run(f, args.pop("times"), args.pop("z"), **args)
+        assert_unchanged(f, before)
+
+
+@pytest.mark.parametrize("case", CASES, ids=lambda c: c.id)
+def test_nan_mask_policy_skips_the_component(compiled, case):
+    """nan="mask" is accepted for every filter and equals skipping that component (or sample)."""
+    f, g = case.make(compiled[case.model]), case.make(compiled[case.model])
+    a = case.inputs(1)
+    z = np.array(a["z"], dtype=float)
+    z[0] = np.nan
+    if case.marg:
+        step(case, f, 1, z=z, nan="mask")
+        step(case, g, 1, z=np.zeros(3))
+    elif case.model == "attitude":
+        step(case, f, 1, z=z, nan="mask")
+        g.predict(a["t"], a["dt"], u=a["u"]) if g.spec.predict else None
+    else:
+        mask = np.ones(z.size)
+        mask[0] = 0.0
+        step(case, f, 1, z=z, nan="mask")
+        step(case, g, 1, z=np.where(mask > 0, z, 0.0), mask=mask)
+    np.testing.assert_array_equal(f.x, g.x)
+
+
+@pytest.mark.parametrize("case", [c for c in CASES if c.model in ("launcher", "geo_satellite")], ids=lambda c: c.id)
+def test_c_refuses_what_python_promises(compiled, case):
+    """Past the Python contract (buffers written directly), the C kernels still refuse a P with a
+    negative variance (NOT_PD) and report NaN as NONFINITE, writing nothing."""
+    f = case.make(compiled[case.model])
+    step(case, f, 1)
+    a = case.inputs(2)
+    f.update(a["z"], measurement=case.measurement, q=a["q"])
+    x, P = f.x.copy(), f.P.copy()
+    update = f.kernel_call("update", case.measurement)
+    buffer = f.kernel_buffer("P")
+    buffer[0, 0] = -abs(buffer[0, 0])
+    assert update() == STATUS_NOT_PD
+    buffer[0, 0] = np.nan
+    assert update() == STATUS_NONFINITE
+    buffer[0, 0] = P[0, 0]
+    assert np.array_equal(f.x, x) and np.array_equal(f.P, P)
+
+
+@pytest.mark.parametrize("case", [c for c in CASES if c.marg], ids=lambda c: c.id)
+def test_marg_huge_finite_samples_never_give_a_zero_quaternion(compiled, case):
+    """A huge but finite sample is a direction like any other (normalised without overflow)."""
+    f, g = case.make(compiled[case.model]), case.make(compiled[case.model])
+    a = case.inputs(1)
+    step(case, f, 1, z=np.asarray(a["z"]) * 1e307, mag=np.asarray(a["mag"]) * 1e306)
+    step(case, g, 1)
+    assert abs(np.linalg.norm(f.q) - 1) < 1e-14
+    np.testing.assert_allclose(f.q, g.q, atol=1e-14)
+
+
+# ---------------------------------------------------------------------- gating
+@pytest.mark.parametrize("case", [c for c in CASES if c.model in ("launcher", "geo_satellite")], ids=lambda c: c.id)
+def test_gate_refuses_an_outlier_and_counts_it(compiled, case):
+    gated = case.make(compiled[case.model])
+    gated.set_gate(case.measurement, probability=0.999)
+    open_ = case.make(compiled[case.model])
+    step(case, gated, 1)
+    step(case, open_, 1)
+    np.testing.assert_array_equal(gated.x, open_.x)            # a normal innovation passes the gate
+    a = case.inputs(2)
+    outlier = np.array(a["z"]) + 1e3 * np.sqrt(np.diag(gated.R(case.measurement)))
+    before = snapshot(gated)
+    code = gated.update(outlier, measurement=case.measurement, q=a["q"])
+    assert code == STATUS_GATED
+    assert_unchanged(gated, before)
+    assert gated.y(case.measurement)[0] != 0                    # the diagnostics say why
+    times = a["t"] + a["dt"] * np.arange(1, 5)
+    z = np.tile(a["z"], (4, 1))
+    z[2] = outlier
+    result = gated.run(times, z, measurement=case.measurement, q=a["q"],
+                       u=None if a["u"] is None else np.tile(a["u"], (4, 1)))
+    assert result.gated_steps == 1 and result.status[2] == STATUS_GATED and not result.failed_steps.size
+
+
+def test_gate_settings_are_checked(compiled):
+    case = CASES[0]
+    f = case.make(compiled[case.model])
+    for bad in (dict(probability=1.5), dict(probability=0.0), dict(threshold=-1.0), dict(probability="0.9"),
+                dict(probability=0.9, threshold=3.0)):
+        with pytest.raises(ValueError):
+            f.set_gate("radar", **bad)
+    with pytest.raises(ValueError, match="unknown key"):
+        Filter(compiled["launcher"], "ekf", case.x0, case.P0, case.Q, gate={"radr": 0.99})
+
+
+# ---------------------------------------------------------------------- property test
+finite = st.floats(min_value=-1e300, max_value=1e300, allow_nan=False)
+anything = st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.sampled_from([0.0, 1e-300, 1e300, -1.0]))
+
+
+def _psd(P) -> bool:
+    return bool(np.isfinite(P).all() and np.array_equal(P, P.T)
+                and np.linalg.eigvalsh(P)[0] >= -1e-8 * max(np.max(np.abs(P)), 1e-300))
+
+
+@settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(family=st.sampled_from(["ekf", "ukf"]), dt=anything, z=st.lists(anything, min_size=3, max_size=3),
+       mask=st.lists(st.sampled_from([0.0, 1.0]), min_size=3, max_size=3), scale=st.floats(1e-6, 1e6))
+def test_property_launcher_step_errs_cleanly_or_stays_psd(compiled, family, dt, z, mask, scale):
+    case = CASES[0 if family == "ekf" else 1]
+    f = Filter(compiled["launcher"], family, case.x0, case.P0 * scale, case.Q, **case.options)
+    before = snapshot(f)
+    try:
+        f.step(10.0, dt, np.array(z), q=L.station_params(2), mask=np.array(mask))
+    except (ValueError, SymkfError):
+        assert_unchanged(f, before)
+        return
+    assert np.isfinite(f.x).all() and _psd(f.P)
+
+
+@settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(form=st.sampled_from(["simple", "full"]), dt=anything, gyro=st.lists(anything, min_size=3, max_size=3),
+       acc=st.lists(anything, min_size=3, max_size=3), mag=st.lists(finite, min_size=3, max_size=3))
+def test_property_marg_step_errs_cleanly_or_stays_unit(compiled, form, dt, gyro, acc, mag):
+    f = MargFilter(compiled["marg"], form, "marg", q0=CASES[-1].x0)
+    before = snapshot(f)
+    try:
+        f.step(dt, np.array(gyro), np.array(acc), np.array(mag))
+    except (ValueError, SymkfError):
+        assert_unchanged(f, before)
+        return
+    assert np.isfinite(f.q).all() and abs(np.linalg.norm(f.q) - 1) < 1e-12
