@@ -1,20 +1,36 @@
-"""NumPy reference EKF and UKF: the readable oracle (and the "plain Python" timing column).
+"""NumPy references of every generated filter, in one place: the readable oracles (and the
+"plain Python" timing column). One per algorithm, each with the compiled filter's shape (``x``,
+``P``, ``predict``/``update``/``step``):
 
-The model is evaluated through CasADi (the same f_d, F, h, H Functions the C code calls); the
-filter algebra is written out in NumPy exactly as ``codegen/families/kalman.py`` generates it:
-EKF with the Joseph-form update, UKF with Julier sigma points (paper 004 eqs (1)-(3)) redrawn for
-the update, masks and angle wrapping identical. Compiled and reference filters must agree to
-round-off on the same inputs (tests/test_reference_agreement.py).
+- :class:`ReferenceFilter`: EKF (Joseph-form update) and UKF (Julier sigma points, paper 004
+  eqs (1)-(3), redrawn for the update), as ``codegen/families/kalman.py`` generates them;
+- :class:`NumpyCDEKF`: the continuous-discrete EKF of paper 003 (``codegen/families/cd_ekf.py``);
+- :class:`ManifoldReference`: multiplicative EKF / manifold UKF (``codegen/families/manifold.py``);
+- :class:`ReferenceAttitudeFilter`: paper 000's MEKF, UKF and augmented UKF
+  (``codegen/families/quaternion_filters.py``), the quaternion mean by ``numpy.linalg.eigh``;
+- :class:`ReferenceMarg` / :func:`reference_step`: paper 001's gradient-descent filter.
+
+The model is evaluated through CasADi (the same Functions the C code calls); masks and angle
+wrapping are identical. Compiled and reference filters agree to round-off on the same inputs
+(tests/test_contract.py).
 """
 from __future__ import annotations
 
+import casadi as ca
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve, solve_triangular
 
 from symkf.codegen import make_config
+from symkf.codegen.families import quaternion_filters as family
 from symkf.codegen.families.cd_ekf import reference_functions
+from symkf.codegen.families.gradient_descent import ZERO_NORM, marg_functions
 from symkf.codegen.kernels import ModelFunctions
+from symkf.codegen.spec import STATUS_DOMAIN, STATUS_NONFINITE, STATUS_NOT_PD
+from symkf.models import attitude as model
 from symkf.models import get_model
+from symkf.models.marg import ALPHA_DEFAULT, BETA_MADGWICK
+from .backends import SymkfError
+from .contract import as_array, covariance
 
 
 def wrap_angle(a):
@@ -363,3 +379,319 @@ class ManifoldReference:
             v = np.linalg.eigh(M)[1][:, -1]
             mean[i:i + 4] = v if v @ points[0][i:i + 4] >= 0 else -v
         return mean
+
+
+# ---------------------------------------------------------------------- attitude filters (paper 000)
+#: Largest accepted deviation of an initial quaternion's norm from 1 (smaller ones are normalised).
+NORM_TOLERANCE = family.MEASUREMENT_NORM_TOLERANCE
+#: UKF scaling κ used unless given (paper 000 leaves κ open).
+DEFAULT_KAPPA = family.DEFAULT_KAPPA
+KINDS = ("mekf", "ukf", "aukf")
+
+
+def unit_quaternion(name: str, value) -> np.ndarray:
+    """``value`` as a unit quaternion (normalised); ValueError if not finite or |norm - 1| > 1e-3."""
+    q = as_array(name, value, (4,))
+    if not np.isfinite(q).all():
+        raise ValueError(f"{name}: contains NaN or Inf")
+    norm = np.linalg.norm(q)
+    if abs(norm - 1) > NORM_TOLERANCE:
+        raise ValueError(f"{name}: norm {norm:.6g} is not 1 (tolerance {NORM_TOLERANCE}); not an attitude quaternion")
+    return q / norm
+
+
+def _initial_state(q0, b0, P0) -> tuple[np.ndarray, np.ndarray]:
+    x = np.concatenate([unit_quaternion("q0", q0), as_array("b0", b0, (3,))])
+    if not np.isfinite(x).all():
+        raise ValueError("b0: contains NaN or Inf")
+    return x, covariance("P0", P0, 6)
+
+
+def _measurement(q_s) -> np.ndarray:
+    z = as_array("q_s", q_s, (4,))
+    if not np.isfinite(z).all():
+        raise ValueError("q_s: star-tracker quaternion contains NaN or Inf; pass None to skip the update")
+    return z
+
+
+class _Functions:
+    """The CasADi Functions the reference evaluates (built once per process)."""
+
+    _instance = None
+
+    @classmethod
+    def get(cls) -> "_Functions":
+        if cls._instance is None:
+            cls._instance = cls()
+        return cls._instance
+
+    def __init__(self):
+        fns = family.AttitudeFunctions("attitude_reference")
+        self.fns = fns
+        self.transition, self.measurement = family.error_state_jacobians(fns)
+
+    def perturb(self, delta_x, q, b):
+        q_i, b_i, ok = self.fns.perturb(delta_x, q, b)
+        return np.asarray(q_i).ravel(), np.asarray(b_i).ravel(), bool(ok)
+
+    def propagate(self, q, b, omega_g, eta_a, eta_b, dt):
+        q_next, b_next = self.fns.propagate(q, b, omega_g, eta_a, eta_b, dt)
+        return np.asarray(q_next).ravel(), np.asarray(b_next).ravel()
+
+    def star_tracker(self, q, eta_s) -> np.ndarray:
+        return np.asarray(self.fns.star_tracker(q, eta_s)).ravel()
+
+    def error_vector(self, q, q_ref) -> np.ndarray:
+        return np.asarray(self.fns.error_vector(q, q_ref)).ravel()
+
+    def psi(self, q) -> np.ndarray:
+        return np.asarray(self.fns.psi(q))
+
+
+def eigen_mean(quaternions: np.ndarray, weights: np.ndarray, q_ref: np.ndarray) -> np.ndarray:
+    """Eqs (36)-(38) with LAPACK: eigenvector of N = Σ W_i Ψ(q_i) Ψ(q_i)ᵀ for its smallest eigenvalue."""
+    psi = _Functions.get().psi
+    N = sum(w * psi(q) @ psi(q).T for w, q in zip(weights, quaternions))
+    _, vectors = np.linalg.eigh(N)
+    mean = vectors[:, 0]
+    return mean if mean @ q_ref >= 0 else -mean
+
+
+class ReferenceAttitudeFilter:
+    """The NumPy reference of :class:`AttitudeFilter` (same arguments, predict/update/step)."""
+
+    def __init__(self, kind: str, q0, b0, P0, Q=None, R=None, kappa: float = DEFAULT_KAPPA):
+        if kind not in KINDS:
+            raise ValueError(f"kind: expected one of {KINDS}, got {kind!r}")
+        self.kind = kind
+        self.x, self.P = _initial_state(q0, b0, P0)
+        self.Q = model.process_noise_psd() if Q is None else as_array("Q", Q, (6, 6))
+        self.R = model.star_tracker_covariance() if R is None else as_array("R", R, (3, 3))
+        self.kappa = float(kappa)
+        self.f = _Functions.get()
+        self.y, self.S = np.zeros(3), np.zeros((3, 3))
+
+    @property
+    def q(self) -> np.ndarray:
+        return self.x[0:4]
+
+    @property
+    def b(self) -> np.ndarray:
+        return self.x[4:7]
+
+    def predict(self, omega_g, dt: float) -> None:
+        if self.kind == "aukf":
+            self.step(omega_g, dt, None)
+        else:
+            self.x, self.P = getattr(self, f"_{self.kind}_predict")(np.asarray(omega_g, float), dt)
+
+    def update(self, q_s) -> None:
+        if self.kind == "aukf":
+            raise ValueError("update: the augmented UKF updates only inside step(omega_g, dt, q_s)")
+        z = _checked_measurement(_measurement(q_s))
+        self.x, self.P, self.y, self.S = getattr(self, f"_{self.kind}_update")(z)
+
+    def step(self, omega_g, dt: float, q_s=None) -> None:
+        if self.kind != "aukf":
+            self.predict(omega_g, dt)
+            if q_s is not None:
+                self.update(q_s)
+            return
+        z = None if q_s is None else _checked_measurement(_measurement(q_s))
+        self.x, self.P, y, S = self._aukf_step(np.asarray(omega_g, float), dt, z)
+        if z is not None:
+            self.y, self.S = y, S
+
+    # -------------------------------------------------------------- MEKF
+    def _mekf_predict(self, omega_g, dt):
+        q, b = self.f.propagate(self.q, self.b, omega_g, np.zeros(3), np.zeros(3), dt)
+        F, G = (np.asarray(m) for m in self.f.transition(self.x, omega_g, dt))
+        P = F @ self.P @ F.T + G @ (self.Q / dt) @ G.T
+        return np.concatenate([q, b]), 0.5 * (P + P.T)
+
+    def _mekf_update(self, z):
+        H, D = (np.asarray(m) for m in self.f.measurement(self.x))
+        R = D @ self.R @ D.T
+        S = H @ self.P @ H.T + R
+        _cholesky(S)
+        K = np.linalg.solve(S, H @ self.P).T
+        innovation = self.f.error_vector(z, self.q)
+        I_KH = np.eye(6) - K @ H
+        P = I_KH @ self.P @ I_KH.T + K @ R @ K.T
+        return self._corrected(K @ innovation, self.q, self.b), 0.5 * (P + P.T), innovation, S
+
+    # -------------------------------------------------------------- paper's UKF
+    def _sigma(self, covariances, dimension):
+        factor = _block_cholesky(covariances)
+        gamma = np.sqrt(dimension + self.kappa) if dimension + self.kappa > 0 else _domain("n + kappa <= 0")
+        columns = [gamma * factor[:, i] for i in range(factor.shape[1])]
+        offsets = [np.zeros(factor.shape[0])] + columns + [-c for c in columns]
+        scale = dimension + self.kappa
+        weights = np.array([self.kappa / scale] + [0.5 / scale] * (2 * dimension))
+        return offsets, weights
+
+    def _propagate_set(self, offsets, weights, q_hat, b_hat, omega_g, dt):
+        q_points, b_points = [], []
+        for o in offsets:
+            q_i, b_i, ok = self.f.perturb(o[0:6], q_hat, b_hat)
+            if not ok:
+                _domain("a sigma vector has |δp| >= 1 (eq 41)")
+            q_next, b_next = self.f.propagate(q_i, b_i, omega_g, o[6:9], o[9:12], dt)
+            q_points.append(q_next)
+            b_points.append(b_next)
+        q_mean = eigen_mean(q_points, weights, q_points[0])
+        b_mean = sum(w * b for w, b in zip(weights, b_points))
+        deviations = [np.concatenate([self.f.error_vector(q, q_mean), b - b_mean]) for q, b in zip(q_points, b_points)]
+        P = sum(w * np.outer(d, d) for w, d in zip(weights, deviations))
+        return q_points, q_mean, b_mean, deviations, 0.5 * (P + P.T)
+
+    def _ukf_predict(self, omega_g, dt):
+        offsets, weights = self._sigma([self.P, self.Q / dt], 12)
+        _, q_mean, b_mean, _, P = self._propagate_set(offsets, weights, self.q, self.b, omega_g, dt)
+        return np.concatenate([q_mean, b_mean]), P
+
+    def _sigma_update(self, q_hat, b_hat, P, deviations, q_points, eta_points, weights, z):
+        z_points = [self.f.star_tracker(q, eta) for q, eta in zip(q_points, eta_points)]
+        z_mean = eigen_mean(z_points, weights, z_points[0])
+        dz = [self.f.error_vector(zi, z_mean) for zi in z_points]
+        P_yy = sum(w * np.outer(d, d) for w, d in zip(weights, dz))
+        P_xy = sum(w * np.outer(a, d) for w, a, d in zip(weights, deviations, dz))
+        _cholesky(P_yy)
+        K = np.linalg.solve(P_yy, P_xy.T).T
+        innovation = self.f.error_vector(z, z_mean)
+        P_new = P - K @ P_yy @ K.T
+        return self._corrected(K @ innovation, q_hat, b_hat), 0.5 * (P_new + P_new.T), innovation, P_yy
+
+    def _ukf_update(self, z):
+        offsets, weights = self._sigma([self.P, self.R], 9)
+        q_points = []
+        for o in offsets:
+            q_i, _, ok = self.f.perturb(o[0:6], self.q, self.b)
+            if not ok:
+                _domain("a sigma vector has |δp| >= 1 (eq 48)")
+            q_points.append(q_i)
+        return self._sigma_update(self.q, self.b, self.P, [o[0:6] for o in offsets], q_points,
+                                  [o[6:9] for o in offsets], weights, z)
+
+    # -------------------------------------------------------------- augmented UKF
+    def _aukf_step(self, omega_g, dt, z):
+        offsets, weights = self._sigma([np.block([[self.P, np.zeros((6, 9))],
+                                                  [np.zeros((9, 6)), _block_diag(self.Q / dt, self.R)]])], 15)
+        q_points, q_mean, b_mean, deviations, P = self._propagate_set(offsets, weights, self.q, self.b, omega_g, dt)
+        x_pred = np.concatenate([q_mean, b_mean])
+        if z is None:
+            return x_pred, P, None, None
+        return self._sigma_update(q_mean, b_mean, P, deviations, q_points, [o[12:15] for o in offsets], weights, z)
+
+    def _corrected(self, correction, q_hat, b_hat) -> np.ndarray:
+        q, b, ok = self.f.perturb(correction, q_hat, b_hat)
+        if not ok:
+            _domain("the correction has |δp| >= 1 (eq 52)")
+        return np.concatenate([q / np.linalg.norm(q), b])
+
+
+def _checked_measurement(z: np.ndarray) -> np.ndarray:
+    norm = np.linalg.norm(z)
+    if abs(norm - 1) > family.MEASUREMENT_NORM_TOLERANCE:
+        raise SymkfError("reference update", STATUS_DOMAIN, f"|q_s| = {norm:.6g}")
+    return z / norm
+
+
+def _domain(detail: str):
+    raise SymkfError("reference", STATUS_DOMAIN, detail)
+
+
+def _cholesky(A: np.ndarray) -> np.ndarray:
+    if not np.isfinite(A).all():
+        raise SymkfError("reference", STATUS_NONFINITE)
+    try:
+        return np.linalg.cholesky(A)
+    except np.linalg.LinAlgError:
+        raise SymkfError("reference", STATUS_NOT_PD) from None
+
+
+def _block_diag(*blocks) -> np.ndarray:
+    size = sum(b.shape[0] for b in blocks)
+    out, i = np.zeros((size, size)), 0
+    for b in blocks:
+        out[i:i + b.shape[0], i:i + b.shape[0]] = b
+        i += b.shape[0]
+    return out
+
+
+def _block_cholesky(blocks) -> np.ndarray:
+    return _block_diag(*[_cholesky(b) for b in blocks])
+
+
+# ---------------------------------------------------------------------- gradient-descent MARG filter (paper 001)
+def _call(function: ca.Function, *args) -> np.ndarray:
+    return np.asarray(function(*args)).ravel()
+
+
+def _unit_or_zero(v: np.ndarray) -> tuple[np.ndarray, bool]:
+    largest = np.max(np.abs(v))
+    scaled = v / largest if largest > 0 else v
+    norm = np.linalg.norm(scaled)
+    return (scaled / norm, True) if largest * norm > ZERO_NORM else (np.zeros(3), False)
+
+
+def reference_direction(q: np.ndarray, acc: np.ndarray, mag: np.ndarray | None) -> np.ndarray:
+    """Eq (27) normalised, in NumPy around the model's CasADi gradients; zero when not correctable."""
+    fns = marg_functions()
+    a, acc_ok = _unit_or_zero(acc)
+    m, mag_ok = _unit_or_zero(mag) if mag is not None else (np.zeros(3), False)
+    if mag_ok:
+        b = _call(fns["earth_field_reference"], q, m)
+    if acc_ok and mag_ok:
+        grad = _call(fns["gradient_stacked"], q, a, b, m)
+    elif acc_ok:
+        grad = _call(fns["gradient_gravity"], q, a)
+    elif mag_ok:
+        grad = _call(fns["gradient_earth_field"], q, b, m)
+    else:
+        return np.zeros(4)
+    norm = np.linalg.norm(grad)
+    return grad / norm if norm > ZERO_NORM else np.zeros(4)
+
+
+def reference_step(form: str, q: np.ndarray, dt: float, gyro, acc, mag, beta: float, alpha: float) -> np.ndarray:
+    """One step of (26)-(30) or (31) in NumPy (the model's equations evaluated by CasADi)."""
+    q_dot = _call(marg_functions()["quaternion_rate"], q, gyro)        # (7)-(8)
+    direction = reference_direction(q, np.asarray(acc, float), None if mag is None else np.asarray(mag, float))
+    if form == "simple":
+        q_est = q + (q_dot - beta * direction) * dt                    # (31)
+    else:
+        rate_nabla = alpha * np.linalg.norm(q_dot)                     # μ_t/Δt (28)
+        corrected = bool(direction.any()) and rate_nabla + beta > 0
+        gamma = beta / (rate_nabla + beta) if corrected else 0.0       # (30)
+        q_est = gamma * (q - rate_nabla * dt * direction) + (1 - gamma) * (q + q_dot * dt)   # (26), (9), (29)
+    return q_est / np.linalg.norm(q_est)
+
+
+def reference_run(form: str, mode: str, q0, dt, gyro, acc, mag=None, beta: float = BETA_MADGWICK,
+                  alpha: float = ALPHA_DEFAULT) -> np.ndarray:
+    """The NumPy reference over N samples: (N, 4) estimates, the same contract as :meth:`MargFilter.run`."""
+    q = np.asarray(q0, dtype=float).copy()
+    out = np.zeros((len(dt), 4))
+    for k in range(len(dt)):
+        q = reference_step(form, q, dt[k], gyro[k], acc[k], mag[k] if mode == "marg" else None, beta, alpha)
+        out[k] = q
+    return out
+
+
+def reference_initial(acc, mag) -> np.ndarray:
+    """Initial orientation (TRIAD, 9-axis) via the model's CasADi function."""
+    return _call(marg_functions()["initial_orientation"], acc, mag)
+
+
+class ReferenceMarg:
+    """NumPy reference of :class:`~symkf.runtime.marg.MargFilter`: state ``x`` = q, ``step`` per sample."""
+
+    def __init__(self, form: str, mode: str, q0, beta: float = BETA_MADGWICK, alpha: float = ALPHA_DEFAULT):
+        self.form, self.mode, self.beta, self.alpha = form, mode, beta, alpha
+        self.x = np.asarray(q0, dtype=float).copy()
+
+    def step(self, dt: float, gyro, acc, mag=None) -> np.ndarray:
+        self.x = reference_step(self.form, self.x, dt, gyro, acc, mag if self.mode == "marg" else None,
+                                self.beta, self.alpha)
+        return self.x
