@@ -451,7 +451,8 @@ def _compile_units(directory: Path, cc: str, flags: list[str], units: dict[str, 
         if cached.is_file():
             shutil.copyfile(cached, obj)
         else:
-            todo.append((cc.split() + flags + ["-c", "-o", obj.name, file], obj, cached))
+            todo.append((cc.split() + flags + ["-c", "-o", obj.name, file], obj, cached, len(text)))
+    todo = [item[:3] for item in sorted(todo, key=lambda item: -item[3])]      # largest first: shortest wall time
     for (cmd, _, _), (returncode, stderr) in zip(todo, run_compilers([c for c, _, _ in todo], directory)):
         if returncode != 0:
             raise BuildError(f"compiling {cmd[-1]} failed ({' '.join(cmd)}):\n{stderr[-4000:]}")
