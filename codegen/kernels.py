@@ -276,12 +276,18 @@ def gated(gate: ca.SX, mask: ca.SX, nis: ca.SX) -> ca.SX:
 
 
 def all_finite(values: list[ca.SX]) -> ca.SX:
-    """1 if every entry of every value is finite (NaN != NaN; |Inf| is not < Inf), else 0."""
-    flag = ca.SX(1)
+    """1 if every entry of every value is finite, else 0: |sum of the entries x 2^-1000| < Inf (a NaN
+    or an infinite entry makes the sum NaN or infinite; scaled finite entries cannot overflow it)."""
+    total = ca.SX(0)
     for value in values:
         for i in range(value.numel()):
-            flag = flag * (value[i] == value[i]) * (ca.fabs(value[i]) < ca.inf)
-    return flag
+            total = total + value[i] * FINITE_SCALE
+    return ca.fabs(total) < ca.inf
+
+
+#: 2^-1000: scaled, any finite input has |v| < 2^24, so a sum of fewer than 2^999 of them is
+#: finite; a NaN or an infinity makes the sum NaN or infinite. One multiply-add per entry.
+FINITE_SCALE = 2.0 ** -1000
 
 
 #: Argument order of every generated filter function (a kernel uses the subset it needs).

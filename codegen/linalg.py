@@ -14,6 +14,33 @@ def symmetrize(A: ca.SX) -> ca.SX:
     return 0.5 * (A + A.T)
 
 
+def symmetric(n: int, entry) -> ca.SX:
+    """The n x n symmetric matrix whose lower triangle is ``entry(i, j)`` (i >= j), mirrored: the
+    upper half is not computed (half the work of forming a full product and symmetrizing it)."""
+    M = ca.SX.zeros(n, n)
+    for j in range(n):
+        for i in range(j, n):
+            M[i, j] = entry(i, j)
+            M[j, i] = M[i, j]
+    return M
+
+
+def sandwich(A: ca.SX, B: ca.SX) -> ca.SX:
+    """A B A^T for a symmetric B, lower triangle computed once and mirrored (exactly symmetric)."""
+    AB = A @ B
+    return symmetric(A.shape[0], lambda i, j: ca.dot(AB[i, :].T, A[j, :].T))
+
+
+def gram(U: ca.SX) -> ca.SX:
+    """U^T U, lower triangle only, mirrored (bit-identical to the full product: U_ki U_kj = U_kj U_ki)."""
+    return symmetric(U.shape[1], lambda i, j: ca.dot(U[:, i], U[:, j]))
+
+
+def symmetric_part(A: ca.SX, i: int, j: int) -> ca.SX:
+    """Entry (i, j) of 0.5 (A + A^T) (A itself on the diagonal)."""
+    return A[i, i] if i == j else 0.5 * (A[i, j] + A[j, i])
+
+
 def cholesky(A: ca.SX) -> tuple[ca.SX, ca.SX]:
     """Lower-triangular L with L L^T = A, and a 0/1 flag that A was positive definite."""
     n = A.shape[0]

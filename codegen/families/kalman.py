@@ -62,7 +62,8 @@ def _predict_doc(model: Model, name: str, detail: str) -> str:
 def ekf_predict_expr(symbols: Symbols, fns: ModelFunctions, x, P, t, dt, Q):
     s = symbols.sym
     x_next, F = fns.for_filter("ekf").fd_and_jac(t, dt, x, s["u"], s["p"])
-    return x_next, linalg.symmetrize(F @ P @ F.T + process_noise(symbols, fns, Q, x, t, dt))
+    FPF, Qd = linalg.sandwich(F, P), process_noise(symbols, fns, Q, x, t, dt)
+    return x_next, linalg.symmetric(P.shape[0], lambda i, j: FPF[i, j] + linalg.symmetric_part(Qd, i, j))
 
 
 def ekf_update_expr(symbols: Symbols, fns: ModelFunctions, name: str, msym: dict, wrap, x, P, t):
@@ -78,7 +79,7 @@ def ekf_update_expr(symbols: Symbols, fns: ModelFunctions, name: str, msym: dict
     K = linalg.cholesky_solve(L, H @ P).T           # K = P H^T S^-1
     I_KH = ca.SX.eye(n) - K @ H
     x_new = x + K @ y
-    P_new = linalg.symmetrize(I_KH @ P @ I_KH.T + K @ R @ K.T)
+    P_new = linalg.sandwich(I_KH, P) + linalg.sandwich(K, R)          # Joseph form, lower half mirrored
     nis = ca.sumsqr(linalg.solve_lower(L, y))                 # y^T S^-1 y, for the gate
     return x_new, P_new, y, S, ok * linalg.psd_flag(P), nis
 
@@ -173,7 +174,8 @@ def ukf_update_expr(symbols: Symbols, fns: ModelFunctions, name: str, msym: dict
     U = linalg.solve_lower(L, Pxz.T)
     y = innovation(msym["z"], z_pred, mask, wrap)
     x_new = x + U.T @ linalg.solve_lower(L, y)
-    P_new = linalg.symmetrize(P - U.T @ U)
+    UtU = linalg.gram(U)
+    P_new = linalg.symmetric(P.shape[0], lambda i, j: linalg.symmetric_part(P, i, j) - UtU[i, j])
     nis = ca.sumsqr(linalg.solve_lower(L, y))                 # y^T S^-1 y, for the gate
     return x_new, P_new, y, S, ok * ok_s, nis
 

@@ -10,7 +10,8 @@ Paths (rows ``{"filter", "path", "us_per_step", ...}``):
   on the same model, calling our compiled f_d, F, h, H, with the same kappa.
 Each figure is the median over batches of consecutive steps of a real 20 Hz flight segment.
 ``--campaign`` adds ``campaign_wall_s``: the wall time of the default ``compare`` (4 cases x
-100 runs x both filters).
+100 runs x both filters; ``--scheduler`` runs it on Dask), and its throughput per worker. The
+table ends with issue 12's measures: the figure on main before that work, the target, this run's.
 """
 from __future__ import annotations
 
@@ -45,10 +46,12 @@ def add_arguments(parser) -> None:
     parser.add_argument("--campaign", action="store_true", help="also time the default compare campaign")
     parser.add_argument("--instructions", action="store_true",
                         help="also count instructions per C-loop step with valgrind (deterministic)")
+    parser.add_argument("--scheduler", default=None,
+                        help="run --campaign on Dask (local:N or tcp://HOST:PORT; default: local threads)")
 
 
 def run(args) -> int:
-    report = measure(args.steps, args.reference_steps, args.campaign, args.instructions)
+    report = measure(args.steps, args.reference_steps, args.campaign, args.instructions, args.scheduler)
     if args.json:
         print(json.dumps(report, indent=1))
     else:
@@ -218,7 +221,8 @@ def time_filterpy(model, family: str, work: Workload, steps: int) -> float | Non
     return _median_us(batches, batch)
 
 
-def measure(steps: int, reference_steps: int, campaign: bool, instructions: bool = False) -> dict:
+def measure(steps: int, reference_steps: int, campaign: bool, instructions: bool = False,
+            scheduler: str | None = None) -> dict:
     model = load("launcher", backend="compiled")
     work = Workload(steps)
     c_loop = time_c_loop(work, steps, instructions)
@@ -239,10 +243,41 @@ def measure(steps: int, reference_steps: int, campaign: bool, instructions: bool
     report = {"rows": rows, "paper_ms_per_step": L.PAPER_MS_PER_STEP, "ratios": ratios(rows),
               "steps": steps, "reference_steps": reference_steps}
     if campaign:
-        start = time.perf_counter()
-        Campaign(100, 2005).run()
-        report["campaign_wall_s"] = time.perf_counter() - start
+        report.update(time_campaign(scheduler))
+    report["targets"] = targets(report)
     return report
+
+
+def time_campaign(scheduler: str | None = None, runs: int = 100) -> dict:
+    """Wall and CPU time of the default campaign (4 cases x ``runs`` x both filters), and its
+    throughput per worker (runs/s of wall time divided by the workers; CPU time is this process's,
+    so it counts the work only for local threads)."""
+    start, cpu = time.perf_counter(), time.process_time()
+    campaign = Campaign(runs, 2005, scheduler=scheduler)
+    campaign.run()
+    wall = time.perf_counter() - start
+    return {"campaign_wall_s": wall, "campaign_cpu_s": time.process_time() - cpu,
+            "campaign_executor": campaign.stats.executor, "campaign_workers": campaign.stats.workers,
+            "campaign_runs_per_s_per_worker": campaign.stats.runs / wall / campaign.stats.workers}
+
+
+#: Issue 12's figures on main before this work ("today") and its targets; (lower is better).
+ISSUE_12 = {
+    "ekf instructions/step": (16554, 11000), "ukf instructions/step": (50499, 35000),
+    "ekf compiled_step/c_loop": (2.24, 1.5), "ukf compiled_step/c_loop": (1.67, 1.5),
+    "campaign 4x100x2 wall s": (22.9, 15.0),
+}
+
+
+def targets(report: dict) -> dict:
+    """Each issue-12 measure: today's figure, the target, this run's figure, and whether it is met."""
+    count = {r["filter"]: r.get("instructions_per_step") for r in report["rows"] if r["path"] == "c_loop"}
+    now = {f"{f} instructions/step": count.get(f) for f in FILTERS}
+    now.update({f"{f} compiled_step/c_loop": report["ratios"][f]["compiled_step/c_loop"] for f in FILTERS})
+    now["campaign 4x100x2 wall s"] = report.get("campaign_wall_s")
+    return {name: {"today": today, "target": target, "now": now[name],
+                   "met": None if now[name] is None else bool(now[name] <= target)}
+            for name, (today, target) in ISSUE_12.items()}
 
 
 def ratios(rows: list[dict]) -> dict:
@@ -278,5 +313,12 @@ def human_table(report: dict) -> str:
     for family in FILTERS:
         lines.append(f"{family}: " + ", ".join(f"{k} = {v:.1f}" for k, v in report["ratios"][family].items()))
     if "campaign_wall_s" in report:
-        lines.append(f"campaign (4 cases x 100 runs x 2 filters): {report['campaign_wall_s']:.1f} s")
+        lines.append(f"campaign (4 cases x 100 runs x 2 filters): {report['campaign_wall_s']:.1f} s wall, "
+                     f"{report['campaign_cpu_s']:.1f} s CPU here, {report['campaign_executor']}, "
+                     f"{report['campaign_runs_per_s_per_worker']:.1f} runs/s per worker")
+    lines += ["", f"{'issue 12':<28}{'today':>10}{'target':>10}{'now':>10}  met"]
+    for name, row in report["targets"].items():
+        now = "-" if row["now"] is None else f"{row['now']:.4g}"
+        met = "-" if row["met"] is None else ("yes" if row["met"] else "NO")
+        lines.append(f"{name:<28}{row['today']:>10.4g}{row['target']:>10.4g}{now:>10}  {met}")
     return "\n".join(lines)
