@@ -316,9 +316,10 @@ def human_table(report: dict) -> str:
         lines.append(f"campaign (4 cases x 100 runs x 2 filters): {report['campaign_wall_s']:.1f} s wall, "
                      f"{report['campaign_cpu_s']:.1f} s CPU here, {report['campaign_executor']}, "
                      f"{report['campaign_runs_per_s_per_worker']:.1f} runs/s per worker")
+    def figure(value) -> str:
+        return "-" if value is None else (f"{value:,.0f}" if value >= 1000 else f"{value:.3g}")
     lines += ["", f"{'issue 12':<28}{'today':>10}{'target':>10}{'now':>10}  met"]
     for name, row in report["targets"].items():
-        now = "-" if row["now"] is None else f"{row['now']:.4g}"
         met = "-" if row["met"] is None else ("yes" if row["met"] else "NO")
-        lines.append(f"{name:<28}{row['today']:>10.4g}{row['target']:>10.4g}{now:>10}  {met}")
+        lines.append(f"{name:<28}{figure(row['today']):>10}{figure(row['target']):>10}{figure(row['now']):>10}  {met}")
     return "\n".join(lines)

@@ -143,7 +143,9 @@ def flight_times(rate_hz: int, duration: float) -> np.ndarray:
 
 
 #: Runs per task: fixes how per-run sums are grouped (so totals do not depend on the worker count).
-CHUNK_RUNS = 5
+#: A task returns its sums (about 1.7 MB for a whole 20 Hz flight, whatever its run count), so
+#: larger tasks ship less per run; 20 keeps 2 workers busy to the end of a 100-run case.
+CHUNK_RUNS = 20
 #: Per-run summary columns (``CaseResult.per_run[family]``, one row per run, in run order).
 PER_RUN_COLUMNS = ("run", "failed_steps", "diverged", "excursion", "mean_nees",
                    *(f"mean_sq_error_{s}" for s in STATE_NAMES), *(f"final_error_{s}" for s in STATE_NAMES))
@@ -225,10 +227,11 @@ class Campaign:
 
     def __init__(self, runs: int, seed: int, rates=L.RADAR_RATES_HZ, duration: float = L.T_INSERTION,
                  workers: int | None = None, progress=None, tuning: dict | None = None,
-                 scheduler: str | None = None, preset: str = "correct"):
+                 scheduler: str | None = None, preset: str = "correct", chunk_runs: int = CHUNK_RUNS):
         if preset not in PRESETS:
             raise ValueError(f"preset: expected one of {sorted(PRESETS)}, got '{preset}'")
         self.runs, self.seed, self.duration, self.preset = runs, seed, duration, preset
+        self.chunk_runs = chunk_runs
         self.cases = [Case(rate, init) for rate in rates for init in ("small", "large")]
         self.workers, self.scheduler = workers, scheduler
         self.progress = progress or (lambda done, total: None)
@@ -240,7 +243,7 @@ class Campaign:
     def tasks(self) -> list[Task]:
         return [Task(f"{case.rate_hz}Hz-{case.initial_error}-{r.start}", run_chunk,
                      (self.model_key, case, self.seed, (r.start, r.stop), self.duration, self.tuning), len(r))
-                for case in self.cases for r in chunks(self.runs, CHUNK_RUNS)]
+                for case in self.cases for r in chunks(self.runs, self.chunk_runs)]
 
     def run(self, executor=None) -> list[CaseResult]:
         results = {case: CaseResult.empty(case, flight_times(case.rate_hz, self.duration)) for case in self.cases}

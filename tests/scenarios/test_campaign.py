@@ -103,13 +103,13 @@ def cluster(launcher_compiled):
 
 @pytest.fixture(scope="module")
 def on_threads(launcher_compiled):
-    return C.Campaign(RUNS, SEED, rates=(20,), duration=DURATION, workers=2).run()
+    return C.Campaign(RUNS, SEED, rates=(20,), duration=DURATION, workers=2, chunk_runs=5).run()
 
 
 def test_dask_local_cluster_gives_bit_identical_per_run_results(cluster, on_threads):
     executor = H.DaskExecutor(cluster.scheduler_address)
     try:
-        campaign = C.Campaign(RUNS, SEED, rates=(20,), duration=DURATION)
+        campaign = C.Campaign(RUNS, SEED, rates=(20,), duration=DURATION, chunk_runs=5)
         on_dask = campaign.run(executor)
     finally:
         executor.close()
@@ -126,7 +126,7 @@ def test_dask_local_cluster_gives_bit_identical_per_run_results(cluster, on_thre
 
 def test_a_worker_killed_mid_campaign_loses_no_run_and_counts_none_twice(cluster, on_threads):
     executor = H.DaskExecutor(cluster.scheduler_address)
-    campaign = C.Campaign(RUNS, SEED, rates=(20,), duration=DURATION, workers=2)
+    campaign = C.Campaign(RUNS, SEED, rates=(20,), duration=DURATION, chunk_runs=5)
     tasks = campaign.tasks()
     killed = {}
     lock = threading.Lock()
