@@ -87,9 +87,9 @@ class AttitudeFilter(Filter):
     def run(self, omega_g, dt, q_s) -> RunResult:
         """All steps in one compiled call (the C run loop). Step k propagates over dt[k] (> 0)
         with omega_g[k] and updates with q_s[k] unless that row has NaN (no measurement)."""
-        omega_g = np.asarray(omega_g, dtype=float) if not isinstance(omega_g, str) else omega_g
-        n_steps = omega_g.shape[0] if isinstance(omega_g, np.ndarray) and omega_g.ndim == 2 else -1
-        omega_g = contract.finite_array("omega_g", omega_g, (max(n_steps, 0), 3))
+        shape = np.shape(omega_g)
+        n_steps = shape[0] if len(shape) == 2 else 0
+        omega_g = contract.finite_array("omega_g", omega_g, (n_steps, 3))
         dt = np.broadcast_to(contract.as_array("dt", dt, np.shape(dt)), (n_steps,))
         if not (np.isfinite(dt).all() and np.all(dt > 0)):
             raise ValueError("dt: every step must be finite and > 0")

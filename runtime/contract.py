@@ -49,14 +49,17 @@ def time_step(value, allow_zero: bool = False) -> float:
     return dt
 
 
-def as_array(name: str, value, shape: tuple[int, ...]) -> np.ndarray:
-    """``value`` as a float array of exactly ``shape``; ValueError names the argument otherwise."""
-    if isinstance(value, (str, bytes)):
-        raise ValueError(f"{name}: expected numbers of shape {shape}, got {type(value).__name__}")
+def as_array(name: str, value, shape: tuple[int, ...], kinds: str = "fiu") -> np.ndarray:
+    """``value`` as a float array of exactly ``shape``; ValueError names the argument otherwise.
+    Only real numbers are accepted (numpy kinds ``kinds``): no strings, complex, objects or None."""
     try:
-        array = np.asarray(value, dtype=float)
+        raw = np.asarray(value)
     except (TypeError, ValueError):
-        raise ValueError(f"{name}: expected numbers of shape {shape}, got {type(value).__name__}") from None
+        raw = None
+    if raw is None or raw.dtype.kind not in kinds:
+        kind = type(value).__name__ if raw is None or raw.dtype.kind == "O" else f"{type(value).__name__} of {raw.dtype}"
+        raise ValueError(f"{name}: expected real numbers of shape {shape}, got {kind}")
+    array = raw.astype(float)
     if array.shape != shape:
         raise ValueError(f"{name}: expected shape {shape}, got {array.shape}")
     return array
@@ -108,7 +111,7 @@ def covariance(name: str, value, n: int, definite: bool = False) -> np.ndarray:
 
 def mask(value, shape: tuple[int, ...]) -> np.ndarray:
     """An availability mask: exactly 0 or 1 everywhere."""
-    array = as_array("mask", value, shape)
+    array = as_array("mask", value, shape, kinds="fiub")
     if not np.isin(array, (0.0, 1.0)).all():
         raise ValueError(f"mask: entries must be exactly 0 or 1, got {np.unique(array).tolist()}")
     return array

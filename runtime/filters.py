@@ -413,9 +413,8 @@ class Filter:
 
     @staticmethod
     def _series(key: str, value, n_steps: int, shape: tuple) -> np.ndarray:
-        array = np.asarray(value, dtype=float) if not isinstance(value, (str, bytes)) else None
-        if array is not None and array.shape == shape:
-            return np.broadcast_to(array, (n_steps,) + shape)
+        if np.shape(value) == shape:                          # one value held for every step
+            return np.broadcast_to(as_array(key, value, shape), (n_steps,) + shape)
         return as_array(key, value, (n_steps,) + shape)
 
     def _run_nan_policy(self, series: dict, buffers: dict, nan: str) -> dict:

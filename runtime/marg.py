@@ -106,7 +106,7 @@ class MargFilter(Filter):
     def run(self, dt, gyro, acc, mag=None, nan: str = "raise") -> RunResult:
         """Filter N samples in one compiled call (per-sample dt, the first may be 0); q ends at
         the last sample. ``result.q`` holds the estimate after every sample."""
-        dt = np.asarray(dt, dtype=float).ravel() if not isinstance(dt, str) else contract.real("dt", dt)
+        dt = contract.as_array("dt", dt, np.shape(dt)).ravel()
         n = dt.size
         if not (np.isfinite(dt).all() and np.all(dt[1:] > 0) and np.all(dt[:1] >= 0)):
             raise ValueError("dt: every step must be finite and > 0 (the first may be 0)")

@@ -341,6 +341,7 @@ def _bad_step_inputs(case: Case) -> dict[str, dict]:
            "dt Inf": {"dt": np.inf}, "dt string": {"dt": "0.05"}, "dt array": {"dt": np.array([0.05, 0.05])},
            "z NaN": {"z": np.where(np.arange(z.size) == 0, np.nan, z)}, "z Inf": {"z": np.where(np.arange(z.size) == 0, np.inf, z)},
            "z short": {"z": z[:-1]}, "z column": {"z": z[:, None]}, "z string": {"z": "abc"},
+           "z strings": {"z": [str(v) for v in z]}, "z complex": {"z": z + 1j}, "z None": {"z": None},
            "u NaN": {"u": np.full(3 if case.marg or case.model == "attitude" else 4, np.nan)} if a["u"] is not None else None,
            "u shape": {"u": np.zeros(7)}, "nan policy": {"nan": "ignore"}}
     if not case.marg:
