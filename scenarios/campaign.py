@@ -162,7 +162,11 @@ class DaskExecutor:
                                         dashboard_address=":0")
             self.client = Client(self.cluster)
         else:
-            self.client = Client(scheduler)
+            try:
+                self.client = Client(scheduler, timeout="20s")
+            except (OSError, TimeoutError) as exc:
+                raise SystemExit(f"--scheduler {scheduler}: no Dask scheduler answered ({exc}); start one with "
+                                 "`dask scheduler` and workers with `dask worker ADDRESS`, or use local:N") from None
         self.workers = max(1, len(self.client.scheduler_info(n_workers=-1)["workers"]))
         self.name = f"dask:{scheduler}"
         self.lost_errors = (KilledWorker,)
