@@ -11,9 +11,15 @@ using extended Kalman filter and unscented Kalman filter", J. Astron. Space Sci.
 
 Choices the paper leaves open (documented, each a named constant below):
 
-- Earth: a sphere of radius R_EARTH = 6378.137 km for the vehicle *and* the radar stations
-  (the paper's r = 6678.137 km "corresponds to 300 km altitude", which fixes this radius).
-  Station latitudes of section 3.2 are placed on that sphere; "up" at a station is radial.
+- Earth: a sphere of radius R_EARTH = 6378.137 km for the vehicle (gravity, altitude; the
+  paper's r = 6678.137 km "corresponds to 300 km altitude", which fixes this radius).
+- Radar stations, two measurements: ``radar`` (the paper preset) places section 3.2's station
+  latitudes on that sphere, "up" radial; ``radar_wgs84`` reads them as WGS84 geodetic latitude,
+  longitude and height (heights not printed: 0 m) and computes range, elevation and azimuth in
+  the station's local East-North-Up frame of the ellipsoid, the vehicle's position from the
+  state's geocentric (r, theta, phi). A spherical station sits 6.5-7 km above the ellipsoid
+  and ~20 km south of the WGS84 one (geocentric vs geodetic latitude), so the two differ along
+  this flight by up to 17 km in range and 0.09 rad in elevation (hundreds of times the noise).
 - Atmosphere: exponential, rho = 1.225 exp(-h / 7.2 km); speed of sound 340 m/s; drag
   coefficient Cd(M) = 0.25 + 0.25 / (1 + ((M - 1.1)/0.4)^2) (transonic peak 0.5); lift slope
   CL_alpha = 2 /rad; reference area from the stage diameter of Table 1.
@@ -45,6 +51,9 @@ MU_EARTH = 3.986004418e14         # m^3/s^2, WGS-84 GM
 R_EARTH = 6378.137e3              # m, sphere radius (paper: r = 6678.137 km <-> 300 km altitude)
 OMEGA_EARTH = 7.292115e-5         # rad/s, paper 004 after eq (6)
 DEG = np.pi / 180.0
+WGS84_A = 6378137.0               # m, WGS84 semi-major axis
+WGS84_F = 1 / 298.257223563       # WGS84 flattening
+WGS84_E2 = WGS84_F * (2 - WGS84_F)  # first eccentricity squared
 
 # ---------------------------------------------------------------- Table 1: vehicle
 STAGE1_MASS = 87.2e3              # kg, Table 1 total mass, stage 1
@@ -102,6 +111,10 @@ LIFTOFF_SPEED = 20.0              # m/s, Table 2 (0.02 km/s at t = 0)
 RADAR_STATIONS_DEG = ((33.8, 126.8), (28.8, 129.5), (24.5, 125.4))
 RADAR_HANDOVER_TIMES = (178.0, 311.8)           # s: station 1 -> 2, station 2 -> 3
 RADAR_SIGMA = (10.0, 0.1e-3, 0.1e-3)            # m, rad, rad: section 3.2
+#: Station heights above the WGS84 ellipsoid (m): not printed in the paper, taken as 0.
+RADAR_STATION_HEIGHTS_M = (0.0, 0.0, 0.0)
+#: The measurement of each station model (the spherical one is the paper preset).
+RADAR_MEASUREMENTS = {"spherical": "radar", "wgs84": "radar_wgs84"}
 
 #: Section 4, eq (9) and (10): initial estimation errors dx0 = x - x_hat (small and large).
 INITIAL_ERROR = {
@@ -145,6 +158,12 @@ def station_params(station: int) -> np.ndarray:
     """Measurement parameters [latitude, longitude] (rad) of radar station 1, 2 or 3."""
     lat, lon = RADAR_STATIONS_DEG[station - 1]
     return np.array([lat * DEG, lon * DEG])
+
+
+def station_params_wgs84(station: int) -> np.ndarray:
+    """Measurement parameters [geodetic latitude (rad), longitude (rad), height (m)] of station 1-3."""
+    lat, lon = RADAR_STATIONS_DEG[station - 1]
+    return np.array([lat * DEG, lon * DEG, RADAR_STATION_HEIGHTS_M[station - 1]])
 
 
 def station_at(t: float) -> int:
@@ -246,11 +265,24 @@ def build() -> Model:
     station_lat, station_lon = m.measurement_params("radar", [
         ("station_latitude", "rad", "radar station latitude (on the spherical Earth)"),
         ("station_longitude", "rad", "radar station longitude")])
-    rng, elevation, azimuth = _radar(r, theta, phi, station_lat, station_lon)
+    station = _on_sphere(R_EARTH, station_lat, station_lon)
+    rng, elevation, azimuth = _radar(_on_sphere(r, phi, theta), station, station_lat, station_lon)
     m.measurement("radar", [
         ("range", "m", "slant range from the station, eq (7)", rng),
         ("elevation", "rad", "elevation above the station's horizontal, eq (7)", elevation),
         ("azimuth", "rad", "azimuth from North, clockwise, eq (7)", azimuth)],
+        sigma=RADAR_SIGMA, wrap=(False, False, True))
+
+    geo_lat, geo_lon, geo_height = m.measurement_params("radar_wgs84", [
+        ("station_latitude", "rad", "radar station geodetic latitude (WGS84)"),
+        ("station_longitude", "rad", "radar station longitude (WGS84)"),
+        ("station_height", "m", "radar station height above the WGS84 ellipsoid")])
+    station = geodetic_to_ecef(geo_lat, geo_lon, geo_height)
+    rng, elevation, azimuth = _radar(_on_sphere(r, phi, theta), station, geo_lat, geo_lon)
+    m.measurement("radar_wgs84", [
+        ("range", "m", "slant range from a WGS84 station, eq (7)", rng),
+        ("elevation", "rad", "elevation above the station's ellipsoid tangent plane, eq (7)", elevation),
+        ("azimuth", "rad", "azimuth from geodetic North, clockwise, eq (7)", azimuth)],
         sigma=RADAR_SIGMA, wrap=(False, False, True))
     # Table 2's switches of thrust, mass and area: no integrator step straddles one
     m.events = (T_STAGE1_BURNOUT, T_FAIRING, T_STAGE2_IGNITION, T_INSERTION)
@@ -258,13 +290,23 @@ def build() -> Model:
     return m
 
 
-def _radar(r, theta, phi, station_lat, station_lon):
-    """Range, elevation and azimuth of the vehicle seen from a station on the sphere, eq (7)."""
-    def on_sphere(radius, lat, lon):
-        return ca.vertcat(radius * ca.cos(lat) * ca.cos(lon), radius * ca.cos(lat) * ca.sin(lon),
-                          radius * ca.sin(lat))
-    los = on_sphere(r, phi, theta) - on_sphere(R_EARTH, station_lat, station_lon)
-    slat, clat, slon, clon = ca.sin(station_lat), ca.cos(station_lat), ca.sin(station_lon), ca.cos(station_lon)
+def _on_sphere(radius, lat, lon):
+    """Earth-fixed Cartesian position of a point at a geocentric radius, latitude and longitude."""
+    return ca.vertcat(radius * ca.cos(lat) * ca.cos(lon), radius * ca.cos(lat) * ca.sin(lon), radius * ca.sin(lat))
+
+
+def geodetic_to_ecef(lat, lon, height):
+    """WGS84 geodetic latitude, longitude (rad) and ellipsoidal height (m) -> Earth-fixed x, y, z (m)."""
+    n = WGS84_A / ca.sqrt(1 - WGS84_E2 * ca.sin(lat) ** 2)        # prime-vertical radius of curvature
+    return ca.vertcat((n + height) * ca.cos(lat) * ca.cos(lon), (n + height) * ca.cos(lat) * ca.sin(lon),
+                      (n * (1 - WGS84_E2) + height) * ca.sin(lat))
+
+
+def _radar(vehicle, station, lat, lon):
+    """Range, elevation and azimuth of the vehicle (Earth-fixed position) from a station whose
+    local vertical has latitude ``lat`` and longitude ``lon`` (East-North-Up frame), eq (7)."""
+    los = vehicle - station
+    slat, clat, slon, clon = ca.sin(lat), ca.cos(lat), ca.sin(lon), ca.cos(lon)
     east = -slon * los[0] + clon * los[1]
     north = -slat * clon * los[0] - slat * slon * los[1] + clat * los[2]
     up = clat * clon * los[0] + clat * slon * los[1] + slat * los[2]

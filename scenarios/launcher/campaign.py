@@ -24,6 +24,10 @@ Two named filter configurations (``PRESETS``, ``--filters``), each a codegen con
   1e-12, 1e-12 rad^2/s, 0.005 m^2/s, 1e-16, 1e-16 rad^2/s) (Q dt per step) and floor
   [0.01 m/s, 1e-8, 1e-8 rad, 0.1 m, 1e-9, 1e-9 rad].
 
+Radar stations: ``correct`` reads section 3.2's coordinates as WGS84 geodetic (measurement
+``radar_wgs84``: truth data and filters), ``paper-like`` places them on the spherical Earth
+(``radar``, the paper's reading); ``--stations`` overrides either.
+
 Per-filter knobs on top of a preset: ``ekf_q_scale``, ``ukf_q_scale`` (multiply Q for one
 filter), ``P0_floor``. x_hat(0) = x(0) - dx0 with dx0 from eq (9) or (10); R = diag(sigma_R^2,
 sigma_E^2, sigma_A^2) of section 3.2; UKF kappa = 0 (weights 1/2n).
@@ -53,12 +57,12 @@ PRESETS = {
     "correct": {
         "codegen": {},
         "tuning": {"P0_floor": np.array([1.0, 1e-4, 1e-4, 100.0, 1e-5, 1e-5]), "Q": NEGLECTED_TERMS_Q,
-                   "kappa": 0.0, "ekf_q_scale": 1.0, "ukf_q_scale": 1.0}},
+                   "kappa": 0.0, "ekf_q_scale": 1.0, "ukf_q_scale": 1.0, "stations": "wgs84"}},
     "paper-like": {
         "codegen": {"ekf_integrator": "euler", "ekf_covariance": "linear", "split_events": False},
         "tuning": {"P0_floor": np.array([0.01, 1e-8, 1e-8, 0.1, 1e-9, 1e-9]),
                    "Q": np.diag([0.005, 1e-12, 1e-12, 0.005, 1e-16, 1e-16]),
-                   "kappa": 0.0, "ekf_q_scale": 1.0, "ukf_q_scale": 1.0}},
+                   "kappa": 0.0, "ekf_q_scale": 1.0, "ukf_q_scale": 1.0, "stations": "spherical"}},
 }
 TUNING = PRESETS["correct"]["tuning"]
 FILTERS = ("ekf", "ukf")
@@ -154,18 +158,18 @@ PER_RUN_COLUMNS = ("run", "failed_steps", "diverged", "excursion", "mean_nees",
 _TRUTH_LOCK = threading.Lock()
 
 
-def case_flight(rate_hz: int, duration: float):
+def case_flight(rate_hz: int, duration: float, measurement: str = "radar"):
     """(times, truth, radar track) of one radar rate, computed once per process (deterministic).
     Serialised: CasADi's CVODES integrator must not be called from two threads at once."""
     with _TRUTH_LOCK:
-        return _case_flight(rate_hz, duration)
+        return _case_flight(rate_hz, duration, measurement)
 
 
 @lru_cache(maxsize=8)
-def _case_flight(rate_hz: int, duration: float):
+def _case_flight(rate_hz: int, duration: float, measurement: str):
     times = flight_times(rate_hz, duration)
     truth = propagate(times)
-    return times, truth, radar_track(times, truth)
+    return times, truth, radar_track(times, truth, measurement)
 
 
 def measurements(seed: int, case: Case, run: int, track) -> np.ndarray:
@@ -190,7 +194,8 @@ def run_chunk(key: ModelKey, case: Case, seed: int, runs: tuple[int, int], durat
     """Runs ``runs[0] .. runs[1] - 1`` of one case through both filters (a campaign task; runs on
     any worker: the model comes from its content hash, the truth is recomputed, the draws are keyed)."""
     model = compiled_model(key)
-    times, truth, track = case_flight(case.rate_hz, duration)
+    measurement = L.RADAR_MEASUREMENTS[tuning["stations"]]
+    times, truth, track = case_flight(case.rate_hz, duration, measurement)
     q = track.station_params()
     x0, P0 = initial_estimate(case, truth[0], tuning["P0_floor"])
 
@@ -204,7 +209,7 @@ def run_chunk(key: ModelKey, case: Case, seed: int, runs: tuple[int, int], durat
             Q = tuning["Q"] * tuning[f"{family}_q_scale"]
             f = model.filter(family, x0, P0, Q, **options)
             start = time.perf_counter()
-            result = f.run(times, z, q=q)
+            result = f.run(times, z, measurement, q=q)
             out.wall_s[family] += time.perf_counter() - start
             error = state_error(truth, result.x, ANGLE_STATES)
             squared, nees_values = error**2, nees(error[::NEES_STRIDE], result.P[::NEES_STRIDE])

@@ -41,6 +41,9 @@ def add_arguments(parser) -> None:
                         help=f"UKF sigma-point scaling, n + kappa > 0 (default {TUNING['kappa']})")
     parser.add_argument("--q-scale", type=float, default=1.0,
                         help="multiply the preset's process-noise density Q by this factor (default 1)")
+    parser.add_argument("--stations", default=None, choices=sorted(L.RADAR_MEASUREMENTS),
+                        help="radar stations on the 'spherical' Earth (paper-like's) or 'wgs84' geodetic (correct's); "
+                             "default: the preset's")
     parser.add_argument("--ekf-q-scale", type=float, default=1.0, help="multiply the EKF's Q only (default 1)")
     parser.add_argument("--ukf-q-scale", type=float, default=1.0, help="multiply the UKF's Q only (default 1)")
     parser.add_argument("--p0-floor", default=None,
@@ -159,6 +162,8 @@ def tuning_from_args(args) -> dict:
     base = PRESETS[args.filters]["tuning"]
     tuning = {"kappa": args.kappa, "Q": base["Q"] * args.q_scale,
               "ekf_q_scale": args.ekf_q_scale, "ukf_q_scale": args.ukf_q_scale}
+    if args.stations is not None:
+        tuning["stations"] = args.stations
     if args.p0_floor is not None:
         floor = np.array([float(v) for v in str(args.p0_floor).split(",")])
         if floor.shape != (6,) or not np.all(np.isfinite(floor) & (floor > 0)):

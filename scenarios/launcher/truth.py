@@ -75,9 +75,10 @@ class RadarTrack:
     times: np.ndarray        # (N,)
     stations: np.ndarray     # (N,) 1, 2 or 3
     clean: np.ndarray        # (N, 3) noise-free range, elevation, azimuth
+    measurement: str = "radar"   # the model's measurement: "radar" (spherical) or "radar_wgs84"
 
     def station_params(self) -> np.ndarray:
-        return np.array([L.station_params(s) for s in self.stations])
+        return station_params(self.stations, self.measurement)
 
     def noisy(self, rng: np.random.Generator) -> np.ndarray:
         """Eq (7): clean values plus sigma times a standard normal draw per component."""
@@ -86,15 +87,24 @@ class RadarTrack:
         return z
 
 
-def radar_track(times: np.ndarray, states: np.ndarray) -> RadarTrack:
-    """Noise-free radar data from the model's measurement function h (eq 7)."""
-    h = measurement_function(get_model("launcher"), "radar")
+def station_params(stations, measurement: str = "radar") -> np.ndarray:
+    """(N, nq) parameters of the given stations for the spherical or the WGS84 radar measurement."""
+    if measurement not in L.RADAR_MEASUREMENTS.values():
+        raise ValueError(f"measurement: expected one of {sorted(L.RADAR_MEASUREMENTS.values())}, got '{measurement}'")
+    params = L.station_params if measurement == "radar" else L.station_params_wgs84
+    return np.array([params(s) for s in stations]).reshape(len(stations), -1)
+
+
+def radar_track(times: np.ndarray, states: np.ndarray, measurement: str = "radar") -> RadarTrack:
+    """Noise-free radar data from the model's measurement function h (eq 7), spherical
+    (``"radar"``, the paper preset) or WGS84 (``"radar_wgs84"``) stations."""
     stations = np.array([L.station_at(t) for t in times])
-    params = np.array([L.station_params(s) for s in stations])
+    params = station_params(stations, measurement)
+    h = measurement_function(get_model("launcher"), measurement)
     n = len(times)
     guidance = np.tile(guidance_vector()[:, None], (1, n))
     clean = np.array(h.map(n)(times, states.T, np.zeros((0, n)), guidance, params.T)).T
-    return RadarTrack(np.asarray(times, float), stations, clean)
+    return RadarTrack(np.asarray(times, float), stations, clean, measurement)
 
 
 def events_table(guidance: dict | None = None) -> list[dict]:

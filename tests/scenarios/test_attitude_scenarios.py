@@ -61,3 +61,31 @@ def test_bench_reports_sigma_points_and_timings(capsys):
     assert results["aukf"]["sigma_points"]["propagation"] == family.N_AUGMENTED_POINTS == 31
     for kind in ("mekf", "ukf", "aukf"):
         assert results[kind]["kernel_step_with_update_us"] > 0 and results[kind]["numpy_reference_propagate_us"] > 0
+
+
+def test_paper_like_preset_scales_the_mekf_process_noise_only(tmp_path):
+    """Issue 11: the paper's "about 30 %" needs the MEKF's Q 16x the UKF's; with equal noise the
+    two filters coincide (the same draws: run k's stream depends on (seed, k) only)."""
+    common = ["--scenario", "I", "--runs", "2", "--duration", "600", "--seed", "3"]
+    results = {}
+    for preset in ("correct", "paper-like"):
+        args = parse(compare_attitude, [*common, "--filters", preset, "--out", str(tmp_path / preset)])
+        assert compare_attitude.run(args) == 0
+        results[preset] = json.loads((tmp_path / preset / "scenario_I" / "summary.json").read_text())
+    correct, paper = results["correct"], results["paper-like"]
+    assert correct["mekf_over_ukf_q_ratio"] == 1 and paper["mekf_over_ukf_q_ratio"] == 16
+    assert abs(correct["ukf_improvement_percent"]) < 0.1
+    assert paper["ukf_improvement_percent"] > 10
+    assert paper["filters"]["ukf"]["attitude_rms_deg"] == pytest.approx(correct["filters"]["ukf"]["attitude_rms_deg"])
+    for name in ("mekf", "ukf"):
+        metrics = paper["filters"][name]
+        assert metrics["transient_rms_deg_first_1000s"] <= metrics["transient_rms_deg_first_300s"]
+        assert 0 < metrics["time_to_1deg_s"] <= metrics["time_to_0.1deg_s"]
+
+
+@pytest.mark.parametrize("bad", [["--mekf-q-scale", "0"], ["--ukf-r-scale", "-1"], ["--mekf-r-scale", "nan"]])
+def test_bad_noise_scales_are_refused(tmp_path, bad):
+    args = parse(compare_attitude, ["--runs", "1", "--duration", "10", "--out", str(tmp_path), *bad])
+    with pytest.raises(SystemExit, match="must be a positive number"):
+        compare_attitude.run(args)
+    assert not (tmp_path / "scenario_I").exists()
