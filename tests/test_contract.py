@@ -199,7 +199,7 @@ def _kernel_inputs(kernel, case: Case, rng) -> dict:
             values[name] = base + np.diag(d) @ (B @ B.T) @ np.diag(d) * 0.1
         elif name in ("t", "dt"):
             values[name] = np.array([0.05 if name == "dt" else 1.0])
-        elif name == "q" and a.get("q") is not None:
+        elif name == "q" and a.get("q") is not None and np.size(a["q"]) == n:   # a second measurement may take other q
             values[name] = a["q"]
         elif name == "z" and np.size(a["z"]) == n:
             values[name] = a["z"]
