@@ -366,7 +366,8 @@ def write_bundle(bundle: Bundle, directory: Path, key: str, generated: str, cc: 
     name = bundle.model_name
     code = c_writer.casadi_source(bundle)
     (directory / f"{name}.c").write_text(c_writer.source(bundle, key, code))
-    (directory / f"{name}.h").write_text(c_writer.header(bundle, key))
+    (directory / f"{name}.h").write_text(c_writer.header(bundle, key, cc,
+                                                         f"{c_writer.STRICT_FLAGS} {bundle.config.optimization} -fPIC"))
     (directory / "Makefile").write_text(c_writer.makefile(name, bundle.config.optimization))
     manifest = {"model": name, "content_hash": key, "generated_hash": generated,
                 "symkf_version": _symkf_version(), "casadi_version": ca.__version__,
@@ -388,10 +389,13 @@ def compile_bundle(directory: Path, name: str, cc: str, config: CodegenConfig, b
     """
     flags = c_writer.STRICT_FLAGS.split() + config.optimization.split() + ["-fPIC"]
     manifest = json.loads((directory / "manifest.json").read_text())
+    hidden = flags + ["-fvisibility=hidden"]        # only the header's SYMKF_API functions are exported
     if bundle is None:
-        objects = [_compile_units(directory, cc, flags, {f"{name}.c": None})[0]]
+        objects = [_compile_units(directory, cc, hidden, {f"{name}.c": None})[0]]
     else:
-        objects = _compile_units(directory, cc, flags, library_units(bundle, manifest["content_hash"]))
+        objects = _compile_units(directory, cc, hidden, library_units(bundle, manifest["content_hash"]))
+    header = directory / f"{name}.h"
+    header.write_text(c_writer.fill_stack(header.read_text(), measure_stack(directory, name, cc, flags)))
     cmd = cc.split() + ["-shared", "-o", f"lib{name}.so"] + [o.name for o in objects] + ["-lm"]
     returncode, stderr = run_compiler(cmd, directory)
     if returncode != 0:
@@ -404,6 +408,27 @@ def compile_bundle(directory: Path, name: str, cc: str, config: CodegenConfig, b
     shutil.copyfile(directory / f"lib{name}.so", directory / loaded)        # a copy, never a hard link
     manifest.update(hashed_library=loaded, library_sha256=sha256_file(directory / loaded))
     (directory / "manifest.json").write_text(json.dumps(manifest, indent=1))
+
+
+def measure_stack(directory: Path, name: str, cc: str, flags: list[str]) -> dict[str, int] | None:
+    """Stack bytes of every function of the flight bundle's ``<name>.c`` as the compiler measures
+    it (GCC ``-fcallgraph-info=su``: own frame + deepest call chain, :func:`c_writer.stack_usage`),
+    cached like the objects by the text, compiler and flags; None if the compiler cannot measure."""
+    text = (directory / f"{name}.c").read_text()
+    cache = directory.parent / ".objects"
+    cache.mkdir(exist_ok=True)
+    cached = cache / (hashlib.sha256(json.dumps([compiler_identity(cc), flags, text]).encode()).hexdigest()[:32] + ".ci")
+    if not cached.is_file():
+        cmd = cc.split() + flags + c_writer.STACK_FLAGS.split() + ["-c", "-o", f"{name}_stack.o", f"{name}.c"]
+        returncode, _ = run_compiler(cmd, directory)
+        for leftover in (f"{name}_stack.o", f"{name}_stack.su"):
+            (directory / leftover).unlink(missing_ok=True)
+        if returncode != 0:           # e.g. clang: no -fcallgraph-info; the header then says -1
+            return None
+        temporary = cached.with_name(f".{cached.name}.{secrets.token_hex(4)}")
+        shutil.move(directory / f"{name}_stack.ci", temporary)
+        os.replace(temporary, cached)
+    return c_writer.stack_usage(cached.read_text())
 
 
 def _kernel_group(kernel: str) -> str:
@@ -425,8 +450,9 @@ def library_units(bundle: Bundle, key: str) -> dict[str, str]:
     units = {}
     for group, kernels in sorted(groups.items()):
         part = Bundle(name, kernels, bundle.config, bundle.description)
-        units[f"{name}_part_{group}.c"] = (f'#include <tgmath.h>\n#include "{name}.h"\n' +
-                                           c_writer.casadi_source(part, prefix=f"{name}_{group}_casadi"))
+        units[f"{name}_part_{group}.c"] = (f'#include <math.h>\n#include "{name}.h"\n{c_writer.math_block()}\n' +
+                                           c_writer.casadi_source(part, prefix=f"{name}_{group}_casadi",
+                                                                  static_kernels=False))
     prototypes = "".join(f"int {k.function.name()}(const casadi_real **arg, casadi_real **res, int *iw, "
                          "casadi_real *w, int mem);\n" for k in bundle.kernels)
     units[f"{name}_wrappers.c"] = c_writer.source(bundle, key, prototypes)

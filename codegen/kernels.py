@@ -257,7 +257,7 @@ def innovation(z: ca.SX, z_pred: ca.SX, mask: ca.SX, wrap: tuple[bool, ...]) -> 
     """z - z_pred, angles wrapped; masked components are exactly 0 even if z is NaN there."""
     rows = []
     for i, is_angle in enumerate(wrap):
-        d = z[i] - z_pred[i]
+        d = linalg.select(mask[i] > 0.5, z[i], z_pred[i]) - z_pred[i]      # a masked NaN enters no arithmetic
         rows.append(linalg.select(mask[i] > 0.5, linalg.wrap_angle(d) if is_angle else d, 0))
     return ca.vertcat(*rows)
 
@@ -320,7 +320,7 @@ def compose_step(name: str, predict: Kernel, update: Kernel) -> Kernel:
     function = ca.Function(f"{model}_k_{name}", [sym[a.name] for a in inputs], outputs,
                            [a.name for a in inputs], [a.name for a in update.outputs],
                            {"allow_duplicate_io_names": True})
-    doc = f"{predict.doc.split(' (')[0]}; then {update.doc} Both in one call."
+    doc = f"{predict.doc.split(' (')[0]}; then {update.doc.replace(' at time t ', ' at t + dt ')} Both in one call."
     return Kernel(name, function, doc, tuple(inputs), update.outputs, carried=("x", "P"),
                   per_step=tuple(a.name for a in inputs if a.name in ("t", "dt", "u", "q", "z", "mask")))
 
@@ -345,7 +345,7 @@ def masked_finite(z: ca.SX, mask: ca.SX) -> ca.SX:
     """1 if every used component of z is finite (masked components may be NaN)."""
     flag = ca.SX(1)
     for i in range(z.shape[0]):
-        flag = flag * ((mask[i] < 0.5) + (mask[i] >= 0.5) * (z[i] == z[i]) * (ca.fabs(z[i]) < ca.inf))
+        flag = flag * ((mask[i] < 0.5) + (mask[i] >= 0.5) * linalg.finite_flag(z[i]))
     return flag
 
 

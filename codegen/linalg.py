@@ -1,7 +1,9 @@
 """Small dense linear algebra written in CasADi SX, so it unrolls into branch-free C.
 
-Cholesky factorisation reports failure as data (a flag) instead of producing NaN: the square root
-is taken of max(pivot, tiny), and the flag says whether every pivot was positive and finite.
+Cholesky factorisation reports failure as data (a flag) instead of producing NaN, and the kernels are
+trap-safe: a branch-free kernel evaluates every branch, including the ones it then discards, so a
+denominator is guarded (replaced by 1 where the branch will be discarded, :func:`guarded`), never
+the result. A failed pivot is replaced by 1 before its square root divides the column below it.
 """
 from __future__ import annotations
 
@@ -48,8 +50,9 @@ def cholesky(A: ca.SX) -> tuple[ca.SX, ca.SX]:
     ok = ca.SX(1)
     for j in range(n):
         pivot = A[j, j] - sum((L[j, k] ** 2 for k in range(j)), ca.SX(0))
-        ok = ok * (pivot > 0) * (pivot < ca.inf)
-        L[j, j] = ca.sqrt(ca.fmax(pivot, TINY))
+        usable = (pivot > 0) * (pivot < ca.inf)
+        ok = ok * usable
+        L[j, j] = ca.sqrt(ca.fmax(guarded(pivot, usable), TINY))
         for i in range(j + 1, n):
             L[i, j] = (A[i, j] - sum((L[i, k] * L[j, k] for k in range(j)), ca.SX(0))) / L[j, j]
     return L, ok
@@ -90,6 +93,19 @@ def wrap_angle(a: ca.SX) -> ca.SX:
     return a - 2 * ca.pi * ca.ceil((a - ca.pi) / (2 * ca.pi))
 
 
+def finite_flag(v: ca.SX) -> ca.SX:
+    """1 if v is finite, else 0, without an ordered comparison on NaN (which raises FE_INVALID):
+    NaN != NaN is tested first, and only a number is compared with infinity."""
+    is_number = v == v
+    return is_number * (ca.fabs(ca.if_else(is_number, v, 0)) < ca.inf)
+
+
+def guarded(denominator: ca.SX, ok: ca.SX) -> ca.SX:
+    """The denominator where ``ok``, else 1: for a division whose result is discarded when not
+    ``ok`` (a branch-free kernel evaluates it anyway; it must not divide by zero or overflow)."""
+    return ca.if_else(ok, denominator, 1)
+
+
 def select(flag: ca.SX, if_true: ca.SX, if_false: ca.SX) -> ca.SX:
     """Element-wise if_else that never lets NaN in the unselected branch leak through."""
     return ca.if_else(flag, if_true, if_false)
@@ -107,7 +123,8 @@ def psd_flag(A: ca.SX) -> ca.SX:
     scale = []
     for i in range(n):
         diag_ok = diag_ok * (A[i, i] >= 0) * (A[i, i] < ca.inf)
-        scale.append(1 / ca.sqrt(ca.fmax(A[i, i], TINY)))
+        usable = (A[i, i] > 0) * (A[i, i] < ca.inf)        # else refused; 1 keeps D A D finite (trap-safe)
+        scale.append(1 / ca.sqrt(ca.fmax(guarded(A[i, i], usable), TINY)))
     D = ca.diag(ca.vertcat(*scale))
     _, ok = cholesky(D @ A @ D + PSD_TOLERANCE * ca.SX.eye(n))
     return diag_ok * ok

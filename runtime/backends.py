@@ -17,7 +17,8 @@ from pathlib import Path
 import numpy as np
 
 from symkf.codegen.build import read_manifest, verified_library
-from symkf.codegen.spec import STATUS_CODES, STATUS_NONFINITE, Bundle, Kernel
+from symkf.codegen.c_writer import passing
+from symkf.codegen.spec import STATUS_CODES, STATUS_NONFINITE, Arg, Bundle, Kernel
 
 
 class SymkfError(RuntimeError):
@@ -109,12 +110,31 @@ class CompiledBackend:
         return BoundCall(kernel, function, ctypes.byref(pointers), keep_alive=(pointers, buffers))
 
     def run_function(self, kernel: str):
-        """``<model>_<kernel>_run`` with int/pointer argument types set."""
+        """``<model>_<kernel>_run`` as ``run(n_steps, *input_addresses, *hist_addresses, status_address)``.
+
+        The C signature passes constant scalars (kappa) by value and leaves zero-size inputs out
+        (:func:`symkf.codegen.c_writer.passing`); this adapter takes every input's buffer address,
+        in manifest order, and passes each the way the C function expects it.
+        """
         info = self.kernels[kernel]
         function = getattr(self.lib, f"{self.model}_{kernel}_run")
-        function.argtypes = [ctypes.c_int] + [ctypes.c_void_p] * (len(info.inputs) + len(info.carried) + 1)
+        how = [run_passing(name, shape, info) for name, shape in info.inputs]
+        function.argtypes = ([ctypes.c_int] + [ctypes.c_double if h == "value" else ctypes.c_void_p
+                                               for h in how if h != "omit"]
+                             + [ctypes.c_void_p] * (len(info.carried) + 1))
         function.restype = ctypes.c_int
-        return function
+
+        def run(n_steps: int, *addresses: int) -> int:
+            inputs, outputs = addresses[:len(how)], addresses[len(how):]
+            passed = [ctypes.c_double.from_address(a).value if h == "value" else a
+                      for h, a in zip(how, inputs) if h != "omit"]
+            return function(n_steps, *passed, *outputs)
+        return run
+
+
+def run_passing(name: str, shape: tuple[int, int], info: KernelInfo) -> str:
+    """How ``<kernel>_run`` takes an input: 'omit', 'value' or 'pointer' (the C writer's rule)."""
+    return passing(Arg(name, shape), info, run=True)
 
 
 class BoundCall(functools.partial):

@@ -239,9 +239,9 @@ def test_every_generated_function_equals_casadi(compiled, model):
         expected = kernel.function.call([np.reshape(inputs[a.name], a.shape, order="F") for a in kernel.inputs])
         ins = [np.asfortranarray(np.reshape(inputs[a.name], a.shape, order="F"), dtype=float) for a in kernel.inputs]
         outs = [np.zeros(a.shape, order="F") for a in kernel.outputs[:-1]]
-        fn = getattr(backend.lib, f"{model}_{kernel.name}")
-        fn.restype, fn.argtypes = ctypes.c_int, [ctypes.c_void_p] * (len(ins) + len(outs))
-        code = fn(*[a.ctypes.data for a in ins + outs])
+        fn = getattr(backend.lib, f"{model}_{kernel.name}_v")        # the binding entry: one pointer array
+        fn.restype, fn.argtypes = ctypes.c_int, [ctypes.c_void_p]
+        code = fn((ctypes.c_void_p * (len(ins) + len(outs)))(*[a.ctypes.data for a in ins + outs]))
         status = int(expected[-1])
         assert code == status or (status == 0 and code == STATUS_NONFINITE), kernel.name
         if code not in (0, STATUS_GATED):

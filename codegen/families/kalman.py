@@ -129,7 +129,8 @@ def sigma_points(x: ca.SX, P: ca.SX, kappa: ca.SX):
     scale = n + kappa
     L, ok = linalg.cholesky(scale * P)
     points = [x] + [x + L[:, i] for i in range(n)] + [x - L[:, i] for i in range(n)]
-    weights = [kappa / scale] + [0.5 / scale] * (2 * n)
+    safe_scale = linalg.guarded(scale, scale > 0)     # n + kappa <= 0 is refused (SYMKF_ERR_DOMAIN)
+    weights = [kappa / safe_scale] + [0.5 / safe_scale] * (2 * n)
     return points, weights, ok * (scale > 0)
 
 

@@ -173,7 +173,7 @@ def _status(checks: list[tuple[ca.SX, int]]) -> ca.SX:
 
 
 def _ukf_weights(dimension: int, kappa: ca.SX) -> list:
-    scale = dimension + kappa
+    scale = linalg.guarded(dimension + kappa, dimension + kappa > 0)   # else refused: SYMKF_ERR_DOMAIN
     return [kappa / scale] + [0.5 / scale] * (2 * dimension)
 
 
@@ -280,7 +280,7 @@ def mekf_kernels(a: AttitudeSymbols, fns: AttitudeFunctions) -> list[Kernel]:
     transition, measurement = error_state_jacobians(fns)
     q_pred, b_pred = fns.propagate(q_hat, b_hat, s["u"], ca.SX.zeros(3), ca.SX.zeros(3), s["dt"])
     F, G = transition(s["x"], s["u"], s["dt"])
-    P_pred = linalg.symmetrize(F @ a.sym["P"] @ F.T + G @ (a.sym["Q"] / s["dt"]) @ G.T)
+    P_pred = linalg.symmetrize(F @ a.sym["P"] @ F.T + G @ (a.sym["Q"] / linalg.guarded(s["dt"], s["dt"] > 0)) @ G.T)
     _, q_pd = linalg.cholesky(a.sym["Q"])
     status = _status([(s["dt"] > 0, STATUS_DOMAIN), (q_pd, STATUS_NOT_PD)])
     predict = a.kernel("mekf_predict",
@@ -344,7 +344,7 @@ def _propagated_sigma_set(a: AttitudeSymbols, fns: AttitudeFunctions, factor, pd
 
 def ukf_predict_kernel(a: AttitudeSymbols, fns: AttitudeFunctions) -> Kernel:
     s = a.base.sym
-    factor, pd = _block_diagonal_factor(a.sym["P"], a.sym["Q"] / s["dt"])
+    factor, pd = _block_diagonal_factor(a.sym["P"], a.sym["Q"] / linalg.guarded(s["dt"], s["dt"] > 0))
     _, _, _, q_mean, b_mean, _, P_pred, checks = _propagated_sigma_set(a, fns, factor, pd,
                                                                        N_ERROR + N_PROCESS_NOISE)
     return a.kernel("ukf_predict", "Paper's UKF propagation in [x, w] (25 sigma points, eqs (9)-(15), (39)-(45), "
@@ -396,7 +396,7 @@ def ukf_update_kernel(a: AttitudeSymbols, fns: AttitudeFunctions) -> Kernel:
 def _augmented_propagation(a: AttitudeSymbols, fns: AttitudeFunctions):
     """The [x, w, v] sigma set (15 dims, 31 points, one full 15x15 Cholesky factor), propagated."""
     s = a.base.sym
-    covariance = ca.diagcat(a.sym["P"], a.sym["Q"] / s["dt"], a.sym["R"])
+    covariance = ca.diagcat(a.sym["P"], a.sym["Q"] / linalg.guarded(s["dt"], s["dt"] > 0), a.sym["R"])
     factor, pd = linalg.cholesky(covariance)          # the full factor, as an augmented UKF does
     return _propagated_sigma_set(a, fns, factor, pd, N_ERROR + N_PROCESS_NOISE + N_MEAS_NOISE)
 
