@@ -211,7 +211,7 @@ def _input_checks(kernel: Kernel) -> list[str]:
         index = "[i]" if size > 1 else ""           # a one-component z and mask come by value
         lines = [f"  casadi_real z_used[{size}];"] + lines
         lines.append(f"  for (i = 0; i < {size}; ++i) {{")
-        lines.append(f"    z_used[i] = mask{index} > 0.5 ? z{index} : 0;")
+        lines.append(f"    z_used[i] = mask{index} > (casadi_real) 0.5 ? z{index} : (casadi_real) 0;")
         lines.append("    if (!isfinite(z_used[i])) return SYMKF_ERR_NONFINITE;")
         lines.append("  }")
     return lines
