@@ -135,7 +135,7 @@ static double now(void) { struct timespec ts; clock_gettime(CLOCK_MONOTONIC, &ts
 static int rd(double *v, int n) { int i; for (i = 0; i < n; ++i) if (scanf("%lf", &v[i]) != 1) return 0; return 1; }
 static double T[20000], Z[60000], QS[40000];
 int main(int argc, char **argv) {
-  double x0[6], P0[36], x[6], P[36], Q[36], R[9], kappa, p[6], y[3], S[9], u[1], mask[3] = {1, 1, 1}, gate[3] = {0, 0, 0};
+  double x0[6], P0[36], x[6], P[36], Q[36], R[9], kappa, p[6], y[3], S[9], mask[3] = {1, 1, 1}, gate[3] = {0, 0, 0};
   double dt = 0.05, batches[1000], start;
   int n, i, k, b, nb, steps, ukf, code = 0;
   if (argc < 3 || !rd(x0, 6) || !rd(P0, 36) || !rd(Q, 36) || !rd(R, 9) || !rd(&kappa, 1) || !rd(p, 6)) return 2;
@@ -150,8 +150,8 @@ int main(int argc, char **argv) {
     for (i = 0; i < 100; ++i, ++k) {
       int j = 1 + k % (n - 1);
       if (j == 1) { int m; for (m = 0; m < 6; ++m) x[m] = x0[m]; for (m = 0; m < 36; ++m) P[m] = P0[m]; }
-      code |= ukf ? launcher_ukf_step_radar(&T[j - 1], &dt, x, P, u, p, Q, &QS[2 * j], &Z[3 * j], mask, R, gate, &kappa, x, P, y, S)
-                  : launcher_ekf_step_radar(&T[j - 1], &dt, x, P, u, p, Q, &QS[2 * j], &Z[3 * j], mask, R, gate, x, P, y, S);
+      code |= ukf ? launcher_ukf_step_radar(T[j - 1], dt, x, P, p, Q, &QS[2 * j], &Z[3 * j], mask, R, gate, kappa, x, P, y, S)
+                  : launcher_ekf_step_radar(T[j - 1], dt, x, P, p, Q, &QS[2 * j], &Z[3 * j], mask, R, gate, x, P, y, S);
     }
     batches[b] = (now() - start) / 100;
   }
