@@ -1,7 +1,8 @@
 """One contract for every model x every filter (issue 10).
 
-For each of the ten generated filters (launcher EKF/UKF, geo continuous-discrete EKF, attitude
-MEKF/UKF/augmented UKF, four gradient-descent MARG forms):
+For each of the twelve generated filters (launcher EKF/UKF, geo continuous-discrete EKF, attitude
+MEKF/UKF/augmented UKF, four gradient-descent MARG forms, and the manifold MEKF/UKF of a user
+model file with a quaternion state, tests/codegen/spinner_model.py):
 
 - compiled == CasADi for every generated function of every bundle;
 - compiled == NumPy reference; run == steps (bit for bit); CasADi VM == compiled;
@@ -13,6 +14,7 @@ from __future__ import annotations
 
 import ctypes
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -28,9 +30,11 @@ from symkf.models import launcher as L
 from symkf.runtime import Filter, SymkfError, load
 from symkf.runtime.attitude import ReferenceAttitudeFilter
 from symkf.runtime.marg import MargFilter, reference_step
-from symkf.runtime.reference import NumpyCDEKF, ReferenceFilter
+from symkf.runtime.reference import ManifoldReference, NumpyCDEKF, ReferenceFilter
 
 N_STEPS = 6
+#: A user model (a file) with a quaternion state: the generated manifold MEKF / UKF.
+SPINNER = str(Path(__file__).resolve().parent / "codegen" / "spinner_model.py")
 
 
 # ---------------------------------------------------------------------- the ten filters
@@ -48,7 +52,7 @@ class Case:
 
     @property
     def id(self) -> str:
-        return f"{self.model}-{self.name}"
+        return f"{Path(self.model).stem}-{self.name}"
 
     @property
     def marg(self) -> bool:
@@ -70,6 +74,11 @@ class Case:
         if self.model == "geo_satellite":
             return dict(t=(k - 1) * 0.125, dt=0.125, z=1e-4 * rng.standard_normal(4), q=None,
                         u=np.array([0.3, -0.1, 0.2, 0.05]))
+        if self.model == SPINNER:
+            from scipy.spatial.transform import Rotation
+            R_t = Rotation.from_quat(self.x0[:4]).as_matrix().T
+            return dict(t=(k - 1) * 0.02, dt=0.02, z=np.r_[R_t @ [0, 0, 1.0], R_t @ [1.0, 0, 0]] + rng.normal(0, 0.01, 6),
+                        q=None, u=np.array([0.3, -0.2]))
         if self.model == "attitude":
             q_s = self.x0[:4] + 1e-3 * rng.standard_normal(4)
             return dict(t=(k - 1) * 0.25, dt=0.25, z=q_s / np.linalg.norm(q_s), q=None,
@@ -121,8 +130,17 @@ def _marg_cases():
     return [Case("marg", f"gd_{form}_{mode}", q0, measurement=mode) for form in ("simple", "full") for mode in ("imu", "marg")]
 
 
-CASES = _launcher_cases() + _geo_cases() + _attitude_cases() + _marg_cases()
-MODELS = ("launcher", "geo_satellite", "attitude", "marg")
+def _spinner_cases():
+    q0 = np.array([0.1, -0.2, 0.3, 0.9]) / np.linalg.norm([0.1, -0.2, 0.3, 0.9])
+    sigma = np.sqrt([0.02, 0.03, 0.05, 0.01, 1e-4])
+    P0 = np.outer(sigma, sigma) * (0.8 * np.eye(5) + 0.2)
+    Q = np.diag([1e-4, 1e-4, 2e-4, 1e-3, 1e-6])
+    return [Case(SPINNER, "mekf", np.r_[q0, 0.4, 0.02], P0, Q, "vectors"),
+            Case(SPINNER, "mukf", np.r_[q0, 0.4, 0.02], P0, Q, "vectors", {"kappa": 0.5})]
+
+
+CASES = _launcher_cases() + _geo_cases() + _attitude_cases() + _marg_cases() + _spinner_cases()
+MODELS = ("launcher", "geo_satellite", "attitude", "marg", SPINNER)
 
 
 @pytest.fixture(scope="module")
@@ -228,7 +246,7 @@ def _kernel_inputs(kernel, case: Case, rng) -> dict:
     return values
 
 
-@pytest.mark.parametrize("model", MODELS)
+@pytest.mark.parametrize("model", MODELS, ids=lambda m: Path(m).stem)
 def test_every_generated_function_equals_casadi(compiled, model):
     """Every kernel of every bundle, called through its C wrapper, equals CasADi's evaluation."""
     bundle = generate(model)
@@ -239,7 +257,7 @@ def test_every_generated_function_equals_casadi(compiled, model):
         expected = kernel.function.call([np.reshape(inputs[a.name], a.shape, order="F") for a in kernel.inputs])
         ins = [np.asfortranarray(np.reshape(inputs[a.name], a.shape, order="F"), dtype=float) for a in kernel.inputs]
         outs = [np.zeros(a.shape, order="F") for a in kernel.outputs[:-1]]
-        fn = getattr(backend.lib, f"{model}_{kernel.name}_v")        # the binding entry: one pointer array
+        fn = getattr(backend.lib, f"{compiled[model].name}_{kernel.name}_v")   # the binding entry: one pointer array
         fn.restype, fn.argtypes = ctypes.c_int, [ctypes.c_void_p]
         code = fn((ctypes.c_void_p * (len(ins) + len(outs)))(*[a.ctypes.data for a in ins + outs]))
         status = int(expected[-1])
@@ -272,6 +290,13 @@ def _reference_states(case: Case) -> list[np.ndarray]:
         for k in range(1, N_STEPS + 1):
             a = case.inputs(k)
             ref.step(a["u"], a["dt"], a["z"])
+            out.append(ref.x.copy())
+        return out
+    if case.model == SPINNER:
+        ref = ManifoldReference(SPINNER, case.name, case.x0, case.P0, case.Q, kappa=case.options.get("kappa", 0.0))
+        for k in range(1, N_STEPS + 1):
+            a = case.inputs(k)
+            ref.step(a["t"], a["dt"], a["z"], case.measurement, u=a["u"])
             out.append(ref.x.copy())
         return out
     if case.model == "geo_satellite":
@@ -571,7 +596,7 @@ def test_property_launcher_step_errs_cleanly_or_stays_psd(compiled, family, dt, 
 @given(form=st.sampled_from(["simple", "full"]), dt=anything, gyro=st.lists(anything, min_size=3, max_size=3),
        acc=st.lists(anything, min_size=3, max_size=3), mag=st.lists(finite, min_size=3, max_size=3))
 def test_property_marg_step_errs_cleanly_or_stays_unit(compiled, form, dt, gyro, acc, mag):
-    f = MargFilter(compiled["marg"], form, "marg", q0=CASES[-1].x0)
+    f = MargFilter(compiled["marg"], form, "marg", q0=_marg_cases()[0].x0)
     before = snapshot(f)
     try:
         f.step(dt, np.array(gyro), np.array(acc), np.array(mag))
