@@ -8,6 +8,10 @@
   call from Python), ``step_api`` (``MargFilter.step``: argument checks and copies included),
   ``run`` (``MargFilter.run``: the C run loop over a whole trial), ``numpy_reference``
   (``reference_run``, on the first ``--reference-samples`` samples).
+- The generated multiplicative EKF of ``models/marg_ekf.py`` (``mekf``): µs per sample for
+  ``step_bound`` (the bound C step, buffers filled), ``step_api`` (``Filter.step`` with its
+  contract checks) and ``run`` (``Filter.run`` over the whole trial: contract checks, masks and
+  the C loop); its BROAD RMSE per trial.
 - RMSE per BROAD trial (total / heading / inclination over movement phases, deg) at β = 0.041
   (Madgwick's suggested gain) and at the best β of a log sweep (grid of ``compare_marg`` plus 0.041), for both forms.
 """
@@ -27,6 +31,7 @@ from symkf.runtime import load
 from symkf.runtime.marg import MargFilter, reference_run
 from symkf.scenarios.marg.data import data_dir, load_recording, run_recording
 from symkf.scenarios.marg.metric import broad_errors
+from . import ekf
 from .compare import SWEEP_BETAS
 
 FORMS = ("simple", "full")
@@ -67,7 +72,7 @@ def time_form(compiled, recording, form: str, args) -> dict:
     n_step = min(args.step_samples, len(recording))
     filt = MargFilter(compiled, form, "marg", beta=BETA_MADGWICK)
     filt.initialize(recording.acc[0], recording.mag[0])
-    bound = filt._step                     # the raw bound kernel call (buffers already filled)
+    bound = filt.kernel_call("step", "marg")   # the raw bound kernel call (buffers already filled)
     dt, gyro, acc, mag = recording.dt, recording.gyro, recording.acc, recording.mag
 
     def raw_steps():
@@ -75,7 +80,7 @@ def time_form(compiled, recording, form: str, args) -> dict:
             bound()
 
     def api_steps():
-        for k in range(n_step):
+        for k in range(1, n_step):                 # dt[0] = 0 is a run's start, not a step
             filt.step(dt[k], gyro[k], acc[k], mag[k])
 
     def whole_run():
@@ -89,10 +94,37 @@ def time_form(compiled, recording, form: str, args) -> dict:
 
     return {
         "step_bound_us": _median_seconds(raw_steps, args.repeats) / n_step * 1e6,
-        "step_api_us": _median_seconds(api_steps, args.repeats) / n_step * 1e6,
+        "step_api_us": _median_seconds(api_steps, args.repeats) / (n_step - 1) * 1e6,
         "run_us": _median_seconds(whole_run, args.repeats) / len(recording) * 1e6,
         "numpy_reference_us": _median_seconds(reference, max(1, args.repeats // 2)) / m * 1e6,
     }
+
+
+def time_mekf(compiled, recording, args) -> dict:
+    """µs per sample of the generated MARG MEKF: bound C step, Filter.step, whole-trial run."""
+    n_step = min(args.step_samples, len(recording))
+    filt = ekf.make_filter(compiled, recording)
+    z, mag, mask = ekf.measurements(recording), recording.mag, ekf.masks(recording)
+    x0, P0 = filt.x.copy(), filt.P.copy()
+    filt.step(0.0, recording.dt[1], z[1], "marg", q=mag[1], mask=mask[1], u=recording.gyro[1])
+    bound = filt.kernel_call("step", "marg")
+
+    def raw_steps():
+        for _ in range(n_step):
+            bound()
+
+    def api_steps():
+        for k in range(1, n_step):
+            filt.step(recording.time[k - 1], recording.dt[k], z[k], "marg", q=mag[k], mask=mask[k],
+                      u=recording.gyro[k])
+
+    def whole_run():
+        filt.x, filt.P = x0, P0
+        filt.run(recording.time, z, "marg", q=mag, mask=mask, u=recording.gyro)
+
+    return {"step_bound_us": _median_seconds(raw_steps, args.repeats) / n_step * 1e6,
+            "step_api_us": _median_seconds(api_steps, args.repeats) / (n_step - 1) * 1e6,
+            "run_us": _median_seconds(whole_run, args.repeats) / len(recording) * 1e6}
 
 
 def accuracy(compiled, recording, form: str) -> dict:
@@ -115,9 +147,13 @@ def run(args) -> int:
     first = load_recording(trials[0])
     for form in FORMS:
         result["timing_us_per_sample"][form] = time_form(compiled, first, form, args)
+    mekf = load("marg_ekf", backend="compiled")
+    result["timing_us_per_sample"]["mekf"] = time_mekf(mekf, first, args)
+    result["mekf_rmse_deg"] = {}
     for path in trials:
         recording = first if path == trials[0] else load_recording(path)
         result["rmse_deg"][path.stem] = {form: accuracy(compiled, recording, form) for form in FORMS}
+        result["mekf_rmse_deg"][path.stem] = broad_errors(ekf.run_recording(mekf, recording).q, recording, frame="enu")
     text = json.dumps(result, indent=1)
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)
@@ -134,11 +170,15 @@ def _print_tables(result: dict) -> None:
     print(f"\nus per sample ({result['timing_trial']}):")
     print(f"{'form':8} {'step (bound)':>13} {'step (API)':>11} {'run':>8} {'NumPy ref':>10} {'ref/run':>8}")
     for form, t in result["timing_us_per_sample"].items():
-        print(f"{form:8} {t['step_bound_us']:13.3f} {t['step_api_us']:11.2f} {t['run_us']:8.3f} "
-              f"{t['numpy_reference_us']:10.1f} {t['numpy_reference_us'] / t['run_us']:8.0f}")
+        reference = (f"{t['numpy_reference_us']:10.1f} {t['numpy_reference_us'] / t['run_us']:8.0f}"
+                     if "numpy_reference_us" in t else f"{'-':>10} {'-':>8}")
+        print(f"{form:8} {t['step_bound_us']:13.3f} {t['step_api_us']:11.2f} {t['run_us']:8.3f} {reference}")
     print("\nBROAD RMSE total/heading/inclination [deg], movement phases:")
     for trial, forms in result["rmse_deg"].items():
         for form, r in forms.items():
             a, b = r["beta_0.041"], r["best"]
             print(f"{trial:36} {form:6} beta=0.041: {a['total']:5.2f}/{a['heading']:5.2f}/{a['inclination']:5.2f}"
                   f"   best beta={r['best_beta']:<8g}: {b['total']:5.2f}/{b['heading']:5.2f}/{b['inclination']:5.2f}")
+        m = result["mekf_rmse_deg"][trial]
+        print(f"{trial:36} mekf   (models/marg_ekf.py, one parameter set): "
+              f"{m['total']:5.2f}/{m['heading']:5.2f}/{m['inclination']:5.2f}")

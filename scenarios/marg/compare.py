@@ -17,6 +17,14 @@ the paper's claim that a larger β brings high-frequency oscillation:
   (``q_est ⊗ q_ref⁻¹``, earth frame; the norm over its three components), i.e. the
   oscillation of the estimate about the optical reference, motion removed.
 
+**Over a folder of BROAD trials** (``--data DIR``, ``.hdf5`` or ``.mat`` files): one table, per
+trial, the total / heading / inclination RMSE of Madgwick's filter at β = 0.041, at its best β
+(the sweep grid plus 0.041, chosen per trial: an oracle), and of the generated multiplicative
+EKF of ``models/marg_ekf.py`` (one parameter set for every trial); ``summary.json`` holds the
+rows and ``mean_total_rmse_deg`` (filter name -> mean total RMSE over the trials):
+
+    symkf compare marg --data ../shared/data/broad --out results/marg
+
 Both are also given for the optical reference (NaN gaps linearly interpolated) as the floor of
 real motion. ``--sweep`` adds RMSE and oscillation vs β on a log grid and marks the β of least
 total RMSE (beyond the paper). Everything goes to ``<out>/summary.json`` and PNG figures.
@@ -29,10 +37,11 @@ from pathlib import Path
 
 import numpy as np
 
-from symkf.models.marg import ALPHA_DEFAULT
+from symkf.models.marg import ALPHA_DEFAULT, BETA_MADGWICK
 from symkf.runtime import load
 from symkf.runtime.marg import MargFilter
-from symkf.scenarios.marg.data import Recording, data_dir, load_recording, run_recording
+from symkf.scenarios.marg import ekf
+from symkf.scenarios.marg.data import Recording, broad_trials, data_dir, load_recording, run_recording
 from symkf.scenarios.marg.metric import broad_errors, error_rotation_vectors, euler_angles, from_enu, to_enu
 
 DEFAULT_DATA = data_dir() / "broad" / "01_undisturbed_slow_rotation_A.mat"
@@ -41,7 +50,8 @@ ANGLE_NAMES = ("psi (yaw)", "theta (pitch)", "phi (roll)")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--data", type=Path, default=DEFAULT_DATA, help="a BROAD .mat or an x-io .csv recording")
+    parser.add_argument("--data", type=Path, default=DEFAULT_DATA,
+                        help="a BROAD .mat/.hdf5 or an x-io .csv recording, or a folder of BROAD trials (one table)")
     parser.add_argument("--beta", type=_float_list, default=[0.01, 0.5], help="comma-separated gains (rad/s)")
     parser.add_argument("--out", type=Path, default=Path("results") / "marg")
     parser.add_argument("--sweep", action="store_true", help="also sweep beta on a log grid and mark the best")
@@ -200,6 +210,8 @@ def plot_sweep(result: dict, path: Path, name: str) -> None:
 
 # ---------------------------------------------------------------------- command
 def run(args) -> int:
+    if args.data.is_dir():
+        return run_trials(args)
     try:
         recording = load_recording(args.data)
     except (FileNotFoundError, ValueError) as exc:
@@ -271,3 +283,55 @@ def _print_table(summary: dict) -> None:
         best = summary["sweep"]["best_rmse_deg"]
         print(f"sweep: best beta = {summary['sweep']['best_beta']:g} rad/s, total RMSE {best['total']:.2f} deg "
               f"(heading {best['heading']:.2f}, inclination {best['inclination']:.2f})")
+
+
+# ---------------------------------------------------------------------- a folder of BROAD trials
+FILTERS = ("madgwick_0.041", "madgwick_best", "mekf")
+
+
+def trial_row(madgwick, mekf, recording: Recording, args) -> dict:
+    """One trial: Madgwick at β = 0.041, at its best β of the grid, and the generated MEKF."""
+    betas = sorted(set(SWEEP_BETAS.tolist()) | {BETA_MADGWICK})
+    errors = {beta: broad_errors(run_recording(MargFilter(madgwick, args.form, "marg", beta=beta, alpha=args.alpha),
+                                               recording).q, recording) for beta in betas}
+    best = min(betas, key=lambda beta: errors[beta]["total"])
+    result = ekf.run_recording(mekf, recording)
+    return {"trial": recording.name, "samples": len(recording), "best_beta": best,
+            "madgwick_0.041": errors[BETA_MADGWICK], "madgwick_best": errors[best],
+            "mekf": broad_errors(result.q, recording, frame="enu"),
+            "mekf_failed_steps": int(result.failed_steps.size), "mekf_gated_steps": result.gated_steps,
+            "mekf_heading_used_fraction": float(ekf.masks(recording)[:, 3].mean())}
+
+
+def run_trials(args) -> int:
+    try:
+        paths = broad_trials(args.data)
+        recordings = [load_recording(path) for path in paths]
+    except (FileNotFoundError, ValueError) as exc:
+        print(f"symkf compare marg: {exc} (BROAD trials live in ../shared/data/broad, see its README)")
+        return 1
+    missing = [r.name for r in recordings if r.reference is None]
+    if missing:
+        print(f"symkf compare marg: {missing} have no optical reference")
+        return 1
+    madgwick, mekf = load("marg"), load("marg_ekf")
+    rows = [trial_row(madgwick, mekf, recording, args) for recording in recordings]
+    summary = {"data": str(args.data), "trials": [str(p) for p in paths], "form": args.form, "rows": rows,
+               "mean_total_rmse_deg": {f: float(np.mean([r[f]["total"] for r in rows])) for f in FILTERS},
+               "metric": "BROAD RMSE over movement phases, deg (../shared/data/README.md)",
+               "note": "madgwick_best is an oracle: its beta is chosen per trial against the reference; "
+                       "mekf uses one parameter set (models/marg_ekf.py, scenarios/marg/ekf.py) for every trial"}
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "summary.json").write_text(json.dumps(summary, indent=1))
+    print_trials_table(summary)
+    return 0
+
+
+def print_trials_table(summary: dict) -> None:
+    print(f"BROAD RMSE [deg] total / heading / inclination, {len(summary['rows'])} trials from {summary['data']}")
+    print(f"{'trial':<36} {'Madgwick beta=0.041':>21} {'Madgwick best beta':>27} {'MEKF (marg_ekf)':>21}")
+    for r in summary["rows"]:
+        cells = [" / ".join(f"{r[f][k]:5.2f}" for k in ("total", "heading", "inclination")) for f in FILTERS]
+        print(f"{r['trial']:<36} {cells[0]:>21} {cells[1]:>18} (b={r['best_beta']:<6g}) {cells[2]:>21}")
+    means = summary["mean_total_rmse_deg"]
+    print(f"{'mean total':<36} {means[FILTERS[0]]:>21.2f} {means[FILTERS[1]]:>27.2f} {means[FILTERS[2]]:>21.2f}")

@@ -1,6 +1,6 @@
 """Recordings for the MARG experiment (paper 001): BROAD trials and the x-io Fusion example CSV.
 
-- :func:`load_recording`: BROAD ``.mat`` trials (Laidig et al. 2021, CC BY 4.0; optical reference)
+- :func:`load_recording`: BROAD ``.mat`` or ``.hdf5`` trials (Laidig et al. 2021, CC BY 4.0; optical reference)
   and the x-io Fusion CSV (MIT; no reference), as :class:`Recording`.
 - :func:`run_recording`: a :class:`~symkf.runtime.marg.MargFilter` over a whole recording.
 
@@ -65,10 +65,10 @@ class Recording:
 
 
 def load_broad(path: str | Path) -> Recording:
-    """A BROAD trial (MATLAB v5 .mat): 285.714 Hz IMU, optical reference quaternion (ENU, scalar-first)."""
-    from scipy.io import loadmat
+    """A BROAD trial, as MATLAB v5 ``.mat`` (scipy) or BROAD's own ``.hdf5`` (h5py; the form of the
+    full 39-trial download): 285.714 Hz IMU, optical reference quaternion (ENU, scalar-first)."""
     path = Path(path)
-    data = loadmat(path)
+    data = _read_hdf5(path) if path.suffix in HDF5_SUFFIXES else _read_mat(path)
     rate = float(np.squeeze(data["sampling_rate"]))
     n = data["imu_gyr"].shape[0]
     opt = np.asarray(data["opt_quat"], dtype=float)
@@ -76,6 +76,46 @@ def load_broad(path: str | Path) -> Recording:
                      np.asarray(data["imu_acc"], float), np.asarray(data["imu_mag"], float),
                      opt[:, [1, 2, 3, 0]], np.asarray(data["movement"]).ravel() == 1,
                      "BROAD (Laidig et al. 2021, doi:10.3390/data6070072), CC BY 4.0")
+
+
+HDF5_SUFFIXES = (".hdf5", ".h5")
+BROAD_FIELDS = ("imu_gyr", "imu_acc", "imu_mag", "opt_quat", "movement")
+
+
+def _read_mat(path: Path) -> dict:
+    from scipy.io import loadmat
+    return loadmat(path)
+
+
+def _read_hdf5(path: Path) -> dict:
+    """BROAD's HDF5 layout: one dataset per field, ``sampling_rate`` as a file attribute."""
+    try:
+        import h5py
+    except ImportError:
+        raise ValueError(f"{path}: reading BROAD .hdf5 files needs h5py (pip install 'symkf[broad]')") from None
+    with h5py.File(path, "r") as handle:
+        missing = [f for f in BROAD_FIELDS if f not in handle]
+        if missing:
+            raise ValueError(f"{path}: not a BROAD trial (no datasets {missing})")
+        data = {name: np.asarray(handle[name]) for name in BROAD_FIELDS}
+        data["sampling_rate"] = handle.attrs["sampling_rate"] if "sampling_rate" in handle.attrs \
+            else np.asarray(handle["sampling_rate"])
+    return data
+
+
+def broad_trials(folder: str | Path) -> list[Path]:
+    """The BROAD trials in ``folder``, one file per trial (``.hdf5`` preferred over ``.mat``), by name."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise FileNotFoundError(f"{folder}: no such folder")
+    by_trial: dict[str, Path] = {}
+    for path in sorted(folder.iterdir()):
+        if path.suffix in HDF5_SUFFIXES + (".mat",) and path.stem[:2].isdigit():
+            if path.stem not in by_trial or path.suffix in HDF5_SUFFIXES:
+                by_trial[path.stem] = path
+    if not by_trial:
+        raise FileNotFoundError(f"{folder}: no BROAD trials (NN_name.hdf5 or .mat)")
+    return [by_trial[k] for k in sorted(by_trial)]
 
 
 def load_xio_csv(path: str | Path) -> Recording:
@@ -92,15 +132,15 @@ def load_xio_csv(path: str | Path) -> Recording:
 
 
 def load_recording(path: str | Path) -> Recording:
-    """A BROAD ``.mat`` or an x-io ``.csv`` by file suffix."""
+    """A BROAD ``.mat`` / ``.hdf5`` or an x-io ``.csv`` by file suffix."""
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such recording")
-    if path.suffix == ".mat":
+    if path.suffix in (".mat",) + HDF5_SUFFIXES:
         return load_broad(path)
     if path.suffix == ".csv":
         return load_xio_csv(path)
-    raise ValueError(f"{path}: expected a BROAD .mat or an x-io .csv file")
+    raise ValueError(f"{path}: expected a BROAD .mat / .hdf5 or an x-io .csv file")
 
 
 def run_recording(filt, recording: Recording, initialize: bool = True) -> RunResult:

@@ -79,11 +79,14 @@ def broad_error_angles(q_est_enu: np.ndarray, q_ref_enu: np.ndarray) -> np.ndarr
     return np.column_stack([total, heading, inclination])
 
 
-def broad_errors(q_est_nwu: np.ndarray, recording: Recording) -> dict[str, float]:
-    """BROAD RMSE (deg) over movement phases with a finite reference: total, heading, inclination."""
+def broad_errors(q_est: np.ndarray, recording: Recording, frame: str = "nwu") -> dict[str, float]:
+    """BROAD RMSE (deg) over movement phases with a finite reference: total, heading, inclination.
+    ``frame``: the estimate's earth frame, "nwu" (Madgwick's, rotated into ENU) or "enu"."""
     if recording.reference is None or recording.movement is None:
         raise ValueError(f"{recording.name}: no optical reference, the BROAD metric needs one")
-    angles = broad_error_angles(to_enu(q_est_nwu), recording.reference)
+    if frame not in ("nwu", "enu"):
+        raise ValueError(f"frame: expected 'nwu' or 'enu', got {frame!r}")
+    angles = broad_error_angles(to_enu(q_est) if frame == "nwu" else q_est, recording.reference)
     used = recording.movement & np.isfinite(recording.reference).all(axis=1)
     rmse = np.degrees(np.sqrt(np.mean(angles[used] ** 2, axis=0)))
     return {"total": float(rmse[0]), "heading": float(rmse[1]), "inclination": float(rmse[2]),
