@@ -3,7 +3,7 @@
 4 cases (20 Hz and 10 Hz radar x small eq (9) and large eq (10) initial error), N runs each,
 both filters fed the same radar draws, the whole run of each filter in one compiled C call.
 Writes to --out: rms_table.csv, rms_table.md, fig_velocity_rms.png, fig_radius_rms.png,
-fig_nees.png, summary.json. Tuning and truth: scenarios/launcher_campaign.py, launcher_truth.py.
+fig_nees.png, summary.json. Tuning and truth: scenarios/launcher/campaign.py, truth.py.
 """
 from __future__ import annotations
 

@@ -93,7 +93,11 @@ def _read_hdf5(path: Path) -> dict:
         import h5py
     except ImportError:
         raise ValueError(f"{path}: reading BROAD .hdf5 files needs h5py (pip install 'symkf[broad]')") from None
-    with h5py.File(path, "r") as handle:
+    try:
+        handle = h5py.File(path, "r")
+    except OSError as exc:
+        raise ValueError(f"{path}: not a readable HDF5 file ({exc})") from None
+    with handle:
         missing = [f for f in BROAD_FIELDS if f not in handle]
         if missing:
             raise ValueError(f"{path}: not a BROAD trial (no datasets {missing})")
