@@ -276,7 +276,10 @@ def plot_nees(results: list[CaseResult], path: Path) -> None:
         ax.axhspan(low, high, color="tab:green", alpha=0.2, label="95 % band")
         _mark_events(ax, result.times[-1])
         ax.set_title(f"{result.case.label}: average NEES (6 states)")
+        ax.set_ylabel("average NEES over runs")
         ax.legend(loc="upper right")
+    for ax in axes[-1]:
+        ax.set_xlabel("time (s)   | staging / 2nd ignition,  : radar hand-over")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
