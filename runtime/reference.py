@@ -38,6 +38,18 @@ def wrap_angle(a):
     return a - 2 * np.pi * np.ceil((a - np.pi) / (2 * np.pi))
 
 
+
+def _init_filter_state(ref, model, x0, P0, Q, p, R) -> None:
+    """The state every Kalman-type reference starts from: x, P, Q, parameters, inputs, per
+    measurement its wrap flags and R (default diag(sigma^2)), no innovation yet."""
+    ref.x, ref.P, ref.Q = np.array(x0, float), np.array(P0, float), np.array(Q, float)
+    ref.p = np.array(model.param_defaults if p is None else p, float)
+    ref.u = np.zeros(len(model.inputs))
+    ref.wrap = {name: np.array(m.wrap) for name, m in model.measurements.items()}
+    ref.R = {name: np.diag(m.sigma**2) for name, m in model.measurements.items()}
+    ref.R.update(R or {})
+    ref.y = ref.S = None
+
 class ReferenceFilter:
     """EKF ("ekf") or UKF ("ukf") in plain NumPy, same conventions as the compiled filters."""
 
@@ -49,13 +61,7 @@ class ReferenceFilter:
         self.functions = ModelFunctions(model, make_config(model_name, **overrides))
         self.propagation = self.functions.for_filter(family)     # the family's discretisation
         self.family, self.kappa = family, float(kappa)
-        self.x, self.P, self.Q = np.array(x0, float), np.array(P0, float), np.array(Q, float)
-        self.p = np.array(model.param_defaults if p is None else p, float)
-        self.u = np.zeros(len(model.inputs))
-        self.wrap = {name: np.array(m.wrap) for name, m in model.measurements.items()}
-        self.R = {name: np.diag(m.sigma**2) for name, m in model.measurements.items()}
-        self.R.update(R or {})
-        self.y = self.S = None
+        _init_filter_state(self, model, x0, P0, Q, p, R)
 
     # ---------------------------------------------------------------- model calls
     def _fd(self, t, dt, x):
@@ -243,13 +249,7 @@ class ManifoldReference:
         self.ordinary = [(i, i - sum(1 for qi, _ in self.quaternions if qi < i))
                          for i in range(model.nx) if i not in inside]
         self.n, self.ne = model.nx, model.n_error
-        self.x, self.P, self.Q = np.array(x0, float), np.array(P0, float), np.array(Q, float)
-        self.p = np.array(model.param_defaults if p is None else p, float)
-        self.u = np.zeros(len(model.inputs))
-        self.wrap = {name: np.array(m.wrap) for name, m in model.measurements.items()}
-        self.R = {name: np.diag(m.sigma**2) for name, m in model.measurements.items()}
-        self.R.update(R or {})
-        self.y = self.S = None
+        _init_filter_state(self, model, x0, P0, Q, p, R)
 
     # ---------------------------------------------------------------- the chart
     def retract(self, x, delta):

@@ -258,11 +258,16 @@ def plot_rms(results: list[CaseResult], index: int, state: str, ylabel: str, pat
         ax.set_title(f"{result.case.label} initial error ({result.errors['ekf'].runs} runs)")
         ax.set_ylabel(ylabel)
         ax.legend(loc="upper right")
-    for ax in axes[-1]:
-        ax.set_xlabel("time (s)   | staging / 2nd ignition,  : radar hand-over")
+    _label_time_axis(axes)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def _label_time_axis(axes) -> None:
+    """The bottom row's time axis, with the key to the event lines drawn by _mark_events."""
+    for ax in axes[-1]:
+        ax.set_xlabel("time (s)   | staging / 2nd ignition,  : radar hand-over")
 
 
 def plot_nees(results: list[CaseResult], path: Path) -> None:
@@ -278,8 +283,7 @@ def plot_nees(results: list[CaseResult], path: Path) -> None:
         ax.set_title(f"{result.case.label}: average NEES (6 states)")
         ax.set_ylabel("average NEES over runs")
         ax.legend(loc="upper right")
-    for ax in axes[-1]:
-        ax.set_xlabel("time (s)   | staging / 2nd ignition,  : radar hand-over")
+    _label_time_axis(axes)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
