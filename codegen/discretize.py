@@ -7,13 +7,20 @@ here is typed by hand.
 
 Events. A model that declares known switching times (``Model.events``: staging, ignition,
 burnout) gets a step that never straddles one: [t, t + dt] is cut at the first event t_e in
-(t, t + dt), and [t, t_e] and [t_e, t + dt] are integrated separately (each with ``substeps``
-sub-steps; a step holding no event has an empty second part, which leaves x exactly as it is).
-On [t, t_e] the dynamics' time argument is held at most ``EVENT_INSET`` before t_e, so every RK
-stage sees the before-event dynamics; from t_e on the model's right-continuous schedule gives
-the after-event ones. The cut is branch-free (fmin/fmax/if_else of the event constants), so the
-generated C does the same. At most one event per step is split: steps must be shorter than the
-shortest gap between events (22.9 s for the launcher).
+(t, t + dt], and [t, t_e] and [t_e, t + dt] are integrated separately (each with ``substeps``
+sub-steps). On [t, t_e] the dynamics' time argument is held at most ``EVENT_INSET`` before t_e,
+so every RK stage sees the before-event dynamics; from t_e on the model's right-continuous
+schedule gives the after-event ones. At most one event per step is split: steps must be shorter
+than the shortest gap between events (22.9 s for the launcher).
+
+The step *branches* (:class:`EventBranches`): almost no step holds an event (4 of the 8,686 steps
+of a 20 Hz launcher flight), so a plain branch integrates [t, t + dt] once and a split branch
+integrates the two parts; a CasADi ``Function.conditional`` picks one from the event flag, and the
+generated C evaluates only the chosen branch (an ``if`` around two function calls). Each branch
+is an SX function, so its Jacobian and everything built on it (``EventBranches.function``) is
+derived per branch. The plain branch is the split branch's arithmetic with an empty second part:
+it integrates over h = (t + dt) - t, which is what the split branch does when the first event is
+past t + dt, so both give the same numbers (the empty part only adds zeros).
 """
 from __future__ import annotations
 
@@ -81,9 +88,58 @@ def event_split_step(f, t, dt, x, u, p, w, events, substeps: int, method: str = 
     return integrate(f, cut, end - cut, x_cut, u, p, w, substeps, method)
 
 
+def event_in_step(t, dt, events):
+    """1 if one of the model's events lies in (t, t + dt] (the step is split there), else 0."""
+    end = t + dt
+    return first_event_after(t, events, end + 1.0) <= end
+
+
+class EventBranches:
+    """The discrete step of a model as SX branches and the flag that picks one of them.
+
+    ``branches`` is ``(plain,)`` for a model without events (or with ``split_events`` off), else
+    ``(plain, split)``; each is an SX Function f_d(t, dt, x, u, p, w) -> x(t + dt). Call
+    :meth:`function` to build any function of the step (f_d, its Jacobian, sigma points
+    propagated) once per branch and select the branch at run time.
+    """
+
+    def __init__(self, model: Model, substeps: int, method: str = "rk4", split_events: bool = True):
+        self.model, self.events = model, tuple(model.events) if split_events else ()
+        f = continuous_dynamics(model)
+        dt = ca.SX.sym("dt")
+        args = [model.t, dt, model.x, model.u, model.p, model.w]
+        names = ["t", "dt", "x", "u", "p", "w"]
+        t, x, u, p, w = model.t, model.x, model.u, model.p, model.w
+        if not self.events:
+            plain = integrate(f, t, dt, x, u, p, w, substeps, method)
+            self.branches = (ca.Function("fd", args, [plain], names, ["x_next"], FUNCTION_OPTIONS),)
+            return
+        # (t + dt) - t, not dt: the split branch's first part when no event is inside (same numbers)
+        plain = integrate(f, t, (t + dt) - t, x, u, p, w, substeps, method)
+        split = event_split_step(f, t, dt, x, u, p, w, self.events, substeps, method)
+        self.branches = (ca.Function("fd_plain", args, [plain], names, ["x_next"], FUNCTION_OPTIONS),
+                         ca.Function("fd_split", args, [split], names, ["x_next"], FUNCTION_OPTIONS))
+
+    def function(self, name: str, inputs: list[ca.SX], input_names: list[str], outputs, output_names: list[str],
+                 options: dict) -> ca.Function:
+        """``name``(inputs) -> ``outputs(fd)`` with fd each branch in turn: one SX Function without
+        events, else an MX Function whose ``Function.conditional`` evaluates the plain branch, or
+        the split one when an event lies in (t, t + dt] (``inputs`` start with t and dt)."""
+        made = [ca.Function(f"{name}_{tag}", inputs, outputs(fd), input_names, output_names, options)
+                for tag, fd in zip(("plain", "split"), self.branches)]
+        if len(made) == 1:
+            return ca.Function(name, inputs, outputs(self.branches[0]), input_names, output_names, options)
+        switch = ca.Function.conditional(f"{name}_branch", [made[0]], made[1])
+        sym = [ca.MX.sym(n, *v.shape) for n, v in zip(input_names, inputs)]
+        flag = event_in_step(sym[0], sym[1], self.events)
+        return ca.Function(name, sym, switch.call([flag, *sym]), input_names, output_names, options)
+
+
 def discrete_step(model: Model, f, t, dt, x, u, p, w, substeps: int, method: str = "rk4",
                   split_events: bool = True):
-    """The discrete step of the model's dynamics, split at its events when asked (and it has any)."""
+    """x(t + dt) as one SX expression, split at the model's events when asked (and it has any):
+    branch-free, both parts always integrated (for kernels that inline f_d; :class:`EventBranches`
+    evaluates only the part a step needs)."""
     if split_events and model.events:
         return event_split_step(f, t, dt, x, u, p, w, model.events, substeps, method)
     return integrate(f, t, dt, x, u, p, w, substeps, method)
@@ -91,12 +147,11 @@ def discrete_step(model: Model, f, t, dt, x, u, p, w, substeps: int, method: str
 
 def discrete_dynamics(model: Model, substeps: int, method: str = "rk4", split_events: bool = True) -> ca.Function:
     """f_d(t, dt, x, u, p, w) -> x(t + dt) by RK4 (or Euler) with ``substeps`` sub-steps, split at
-    the model's events unless ``split_events`` is False."""
-    f = continuous_dynamics(model)
-    dt = ca.SX.sym("dt")
-    x_next = discrete_step(model, f, model.t, dt, model.x, model.u, model.p, model.w, substeps, method, split_events)
-    return ca.Function("fd", [model.t, dt, model.x, model.u, model.p, model.w], [x_next],
-                       ["t", "dt", "x", "u", "p", "w"], ["x_next"], FUNCTION_OPTIONS)
+    the model's events unless ``split_events`` is False (the branching form, see :class:`EventBranches`)."""
+    branches = EventBranches(model, substeps, method, split_events)
+    model_args = [model.t, ca.SX.sym("dt"), model.x, model.u, model.p, model.w]
+    return branches.function("fd", model_args, ["t", "dt", "x", "u", "p", "w"], lambda fd: [fd(*model_args)],
+                             ["x_next"], FUNCTION_OPTIONS)
 
 
 def measurement_function(model: Model, name: str) -> ca.Function:

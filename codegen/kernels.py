@@ -16,14 +16,15 @@ A failed factorisation returns a status code and the inputs x, P unchanged.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Callable
 
 import casadi as ca
 
 from symkf.models.base import Model
 from . import linalg
-from .discretize import FUNCTION_OPTIONS, INTEGRATORS, continuous_dynamics, discrete_dynamics, measurement_function
+from .discretize import (FUNCTION_OPTIONS, INTEGRATORS, EventBranches, continuous_dynamics, discrete_step,
+                         measurement_function)
 from .spec import STATUS_GATED, STATUS_NONFINITE, STATUS_NOT_PD, Arg, CodegenConfig, Family, FilterSpec, Kernel
 
 
@@ -116,21 +117,44 @@ class Discretisation:
 
 @dataclass(frozen=True)
 class Propagation:
-    """A family's propagation functions: f_d (called and inlined), its transition matrix, both."""
+    """A family's propagation functions: f_d, its transition matrix, both, and f_d over sigma points.
+
+    Each branches on the model's events (:class:`~symkf.codegen.discretize.EventBranches`): the
+    generated C integrates a step that holds no event once, and only a step that holds one twice.
+    ``fd_inline`` is the branch-free f_d (SX, both parts always integrated), for families that
+    inline f_d in their kernels.
+    """
 
     fd: ca.Function
     fd_inline: ca.Function
     jac_fd: ca.Function
     fd_and_jac: ca.Function
+    branches: EventBranches
+    prefix: str
+    _columns: dict = field(default_factory=dict, compare=False, repr=False)
+
+    def fd_columns(self, k: int) -> ca.Function:
+        """``<prefix>_fd_columns<k>``(t, dt, X, u, p) -> f_d applied to each of the k columns of X
+        (one function per event branch, called, not inlined): the columns share every term of f_d
+        that depends on time only (thrust, mass, guidance), which CSE evaluates once, not k times."""
+        if k not in self._columns:
+            model = self.branches.model
+            t, dt, X = model.t, ca.SX.sym("dt"), ca.SX.sym("X", model.nx, k)
+            u, p = ca.SX.sym("u", len(model.inputs)), ca.SX.sym("p", len(model.params))
+            w = ca.DM.zeros(len(model.noises))
+            self._columns[k] = self.branches.function(
+                f"{self.prefix}_fd_columns{k}", [t, dt, X, u, p], ["t", "dt", "X", "u", "p"],
+                lambda fd: [ca.horzcat(*[fd(t, dt, X[:, i], u, p, w) for i in range(k)])], ["X"],
+                dict(FUNCTION_OPTIONS, never_inline=True))
+        return self._columns[k]
 
 
 class ModelFunctions:
     """The model's own functions, each generated once in C and *called* by the filter kernels.
 
-    f_d, its Jacobian, h and its Jacobian are CasADi SX functions marked ``never_inline``: a UKF
-    calls f_d 2n+1 times without 2n+1 copies of its code, which keeps the C small and fast to
-    compile. A family whose configured :class:`Discretisation` differs from the model's default
-    gets its own f_d variant from :meth:`for_filter`.
+    f_d, its Jacobian, h and its Jacobian are CasADi functions marked ``never_inline``: the C of
+    each is written once and called. A family whose configured :class:`Discretisation` differs
+    from the model's default gets its own f_d variant from :meth:`for_filter`.
     """
 
     def __init__(self, model: Model, config: CodegenConfig):
@@ -163,23 +187,31 @@ class ModelFunctions:
             return self._propagations[d]
         model, prefix = self.model, self.model.name + suffix
         options = dict(FUNCTION_OPTIONS, never_inline=True)
-        fd = discrete_dynamics(model, int(d.substeps), d.integrator, d.split_events)
-        t, dt, x, u, p, w = fd.sx_in()
-        x_next = fd(t, dt, x, u, p, self.zero_w)
+        branches = EventBranches(model, int(d.substeps), d.integrator, d.split_events)
+        t, dt = model.t, ca.SX.sym("dt")
+        x, u, p = ca.SX.sym("x", model.nx), ca.SX.sym("u", len(model.inputs)), ca.SX.sym("p", len(model.params))
         args, names = [t, dt, x, u, p], ["t", "dt", "x", "u", "p"]
-        if d.covariance == "jacobian":
-            F = ca.densify(ca.jacobian(x_next, x))
-        else:   # Phi = I + A dt, A = df/dx at (t, x)
-            xdot = continuous_dynamics(model)(t, x, u, p, self.zero_w)
-            F = ca.SX.eye(model.nx) + ca.densify(ca.jacobian(xdot, x)) * dt
-        # fd_inline is inlined where it is called: the UKF's 2n+1 calls then share every term that
-        # depends on time only (thrust, mass, guidance), which CSE evaluates once per step;
-        # f_d and F together share the primal evaluation (the EKF prediction needs both)
+
+        def step(fd):
+            return fd(t, dt, x, u, p, self.zero_w)
+
+        def transition(fd):
+            if d.covariance == "jacobian":
+                return ca.densify(ca.jacobian(step(fd), x))
+            xdot = continuous_dynamics(model)(t, x, u, p, self.zero_w)     # Phi = I + A dt, A = df/dx at (t, x)
+            return ca.SX.eye(model.nx) + ca.densify(ca.jacobian(xdot, x)) * dt
+
+        # f_d and F together share the primal evaluation (the EKF prediction needs both); F alone
+        # calls that function (one copy of the Jacobian's C)
+        fd_and_jac = branches.function(f"{prefix}_fd_and_jac", args, names, lambda fd: [step(fd), transition(fd)],
+                                       ["x", "F"], options)
+        mx = [ca.MX.sym(n, *v.shape) for n, v in zip(names, args)]
+        jac_fd = ca.Function(f"{prefix}_jac_fd", mx, [fd_and_jac(*mx)[1]], names, ["F"], options)
         made = Propagation(
-            ca.Function(f"{prefix}_fd", args, [x_next], names, ["x"], options),
-            ca.Function(f"{prefix}_fd_inline", args, [x_next], names, ["x"], FUNCTION_OPTIONS),
-            ca.Function(f"{prefix}_jac_fd", args, [F], names, ["F"], options),
-            ca.Function(f"{prefix}_fd_and_jac", args, [x_next, F], names, ["x", "F"], options))
+            branches.function(f"{prefix}_fd", args, names, lambda fd: [step(fd)], ["x"], options),
+            ca.Function(f"{prefix}_fd_inline", args, [discrete_step(model, continuous_dynamics(model), *args, self.zero_w,
+                        int(d.substeps), d.integrator, d.split_events)], names, ["x"], FUNCTION_OPTIONS),
+            jac_fd, fd_and_jac, branches, prefix)
         self._propagations[d] = made
         return made
 

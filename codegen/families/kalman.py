@@ -151,8 +151,9 @@ def _angle_difference(a: ca.SX, b: ca.SX, wrap: tuple[bool, ...]) -> ca.SX:
 def ukf_predict_expr(symbols: Symbols, fns: ModelFunctions, x, P, t, dt, Q):
     s = symbols.sym
     points, weights, ok = sigma_points(x, P, s["kappa"])
-    fd = fns.for_filter("ukf").fd_inline
-    propagated = [fd(t, dt, pt, s["u"], s["p"]) for pt in points]
+    fd = fns.for_filter("ukf").fd_columns(len(points))         # one call, split only at an event
+    moved = fd(t, dt, ca.horzcat(*points), s["u"], s["p"])
+    propagated = [moved[:, i] for i in range(len(points))]
     x_pred = _weighted_mean(propagated, weights)
     P_pred = sum((w * (pt - x_pred) @ (pt - x_pred).T for w, pt in zip(weights, propagated)),
                  ca.SX.zeros(P.shape)) + process_noise(symbols, fns, Q, x, t, dt)

@@ -128,30 +128,61 @@ def time_reference(family: str, work: Workload, steps: int, batch: int = 50) -> 
 
 C_LOOP = r"""
 #include <stdio.h>
+#include <string.h>
 #include <time.h>
 #include "launcher.h"
-/* stdin: x0[6] P0[36] Q[36] R[9] kappa p[6] n_base, n_base lines t z[3] q[2]; argv[1]: ekf|ukf, argv[2]: steps */
+/* stdin: x0[6] P0[36] Q[36] R[9] kappa p[6] n_base, n_base lines t z[3] q[2].
+   argv[1]: ekf|ukf, argv[2]: steps, argv[3] (optional) part: step (default), predict, update, run.
+   step/predict/update: one call of launcher_<filter>_<part>[_radar] per step; run: one call of
+   launcher_<filter>_step_radar_run over all the steps. The record restarts from x0, P0 at its end. */
 static double now(void) { struct timespec ts; clock_gettime(CLOCK_MONOTONIC, &ts); return ts.tv_sec + 1e-9 * ts.tv_nsec; }
 static int rd(double *v, int n) { int i; for (i = 0; i < n; ++i) if (scanf("%lf", &v[i]) != 1) return 0; return 1; }
 static double T[20000], Z[60000], QS[40000];
+static double RT[20000], RDT[20000], RZ[60000], RQ[40000], RM[60000], XH[120000], PH[720000];
+static int SH[20000];
+static double x0[6], P0[36], x[6], P[36], Q[36], R[9], kappa, p[6], y[3], S[9], mask[3] = {1, 1, 1}, gate[3] = {0, 0, 0};
+static int call(int ukf, char part, int j, double dt) {
+  const double *q = &QS[2 * j], *z = &Z[3 * j];
+  if (part == 'p') return ukf ? launcher_ukf_predict(T[j - 1], dt, x, P, p, Q, kappa, x, P)
+                              : launcher_ekf_predict(T[j - 1], dt, x, P, p, Q, x, P);
+  if (part == 'u') return ukf ? launcher_ukf_update_radar(T[j], x, P, p, q, z, mask, R, gate, kappa, x, P, y, S)
+                              : launcher_ekf_update_radar(T[j], x, P, p, q, z, mask, R, gate, x, P, y, S);
+  return ukf ? launcher_ukf_step_radar(T[j - 1], dt, x, P, p, Q, q, z, mask, R, gate, kappa, x, P, y, S)
+             : launcher_ekf_step_radar(T[j - 1], dt, x, P, p, Q, q, z, mask, R, gate, x, P, y, S);
+}
+static int run(int ukf, int n, int steps) {
+  int k, i;
+  if (steps > n - 1 || steps > 20000) return -1;
+  for (k = 0; k < steps; ++k) {
+    RT[k] = T[k]; RDT[k] = T[k + 1] - T[k];
+    for (i = 0; i < 3; ++i) { RZ[3 * k + i] = Z[3 * (k + 1) + i]; RM[3 * k + i] = 1; }
+    for (i = 0; i < 2; ++i) RQ[2 * k + i] = QS[2 * (k + 1) + i];
+  }
+  return ukf ? launcher_ukf_step_radar_run(steps, RT, RDT, x0, P0, p, Q, RQ, RZ, RM, R, gate, kappa, XH, PH, SH)
+             : launcher_ekf_step_radar_run(steps, RT, RDT, x0, P0, p, Q, RQ, RZ, RM, R, gate, XH, PH, SH);
+}
 int main(int argc, char **argv) {
-  double x0[6], P0[36], x[6], P[36], Q[36], R[9], kappa, p[6], y[3], S[9], mask[3] = {1, 1, 1}, gate[3] = {0, 0, 0};
   double dt = 0.05, batches[1000], start;
   int n, i, k, b, nb, steps, ukf, code = 0;
+  char part = argc > 3 ? argv[3][0] : 's';
   if (argc < 3 || !rd(x0, 6) || !rd(P0, 36) || !rd(Q, 36) || !rd(R, 9) || !rd(&kappa, 1) || !rd(p, 6)) return 2;
   ukf = argv[1][0] == 'u';
   if (sscanf(argv[2], "%d", &steps) != 1 || scanf("%d", &n) != 1 || n > 20000) return 2;
   for (i = 0; i < n; ++i) if (!rd(&T[i], 1) || !rd(&Z[3 * i], 3) || !rd(&QS[2 * i], 2)) return 2;
-  for (i = 0; i < 6; ++i) x[i] = x0[i];
-  for (i = 0; i < 36; ++i) P[i] = P0[i];
+  if (part == 'r') {
+    start = now();
+    code = run(ukf, n, steps);
+    printf("%.6f %d\n", 1e6 * (now() - start) / steps, code);
+    return 0;
+  }
+  memcpy(x, x0, sizeof x); memcpy(P, P0, sizeof P);
   nb = steps / 100 > 1000 ? 1000 : steps / 100;
   for (b = 0, k = 0; b < nb; ++b) {
     start = now();
     for (i = 0; i < 100; ++i, ++k) {
       int j = 1 + k % (n - 1);
-      if (j == 1) { int m; for (m = 0; m < 6; ++m) x[m] = x0[m]; for (m = 0; m < 36; ++m) P[m] = P0[m]; }
-      code |= ukf ? launcher_ukf_step_radar(T[j - 1], dt, x, P, p, Q, &QS[2 * j], &Z[3 * j], mask, R, gate, kappa, x, P, y, S)
-                  : launcher_ekf_step_radar(T[j - 1], dt, x, P, p, Q, &QS[2 * j], &Z[3 * j], mask, R, gate, x, P, y, S);
+      if (j == 1) { memcpy(x, x0, sizeof x); memcpy(P, P0, sizeof P); }
+      code |= call(ukf, part, j, dt);
     }
     batches[b] = (now() - start) / 100;
   }
@@ -162,26 +193,26 @@ int main(int argc, char **argv) {
 """
 
 
-def time_c_loop(work: Workload, steps: int, instructions: bool = False) -> dict[str, dict]:
-    """Compile the C loop against build/launcher/ (library flags) and run it for both filters;
-    with ``instructions``, also count instructions per step under callgrind (deterministic, unlike
-    wall-clock time on a shared machine)."""
-    result = build_model("launcher")
-    manifest = json.loads(result.manifest.read_text())
+#: Parts of a step counted by ``--instructions``: the predict and update calls on their own,
+#: the fused step call, and a step inside the compiled run loop.
+PARTS = ("predict", "update", "step", "run")
+
+
+def time_c_loop(work: Workload, steps: int, instructions: bool = False, directory: Path | None = None) -> dict[str, dict]:
+    """Compile the C loop against build/launcher/ (library flags; or ``directory``, a bundle
+    built elsewhere) and run it for both filters; with ``instructions``, also count instructions
+    per call of each part under callgrind (deterministic, unlike wall-clock time on a shared machine)."""
+    if directory is None:
+        directory = build_model("launcher").directory
+    manifest = json.loads((directory / "manifest.json").read_text())
     with tempfile.TemporaryDirectory() as tmp:
         exe = Path(tmp) / "c_loop"
         (Path(tmp) / "c_loop.c").write_text(C_LOOP)
         cmd = compiler().split() + ["-std=c99", *manifest["optimization"].split(), "-D_POSIX_C_SOURCE=199309L",
-                                    f"-I{result.directory}", "-o", str(exe), str(Path(tmp) / "c_loop.c"),
-                                    str(result.directory / f"{manifest['hashed_library']}"), "-lm"]
+                                    f"-I{directory}", "-o", str(exe), str(Path(tmp) / "c_loop.c"),
+                                    str(directory / f"{manifest['hashed_library']}"), "-lm"]
         subprocess.run(cmd, check=True, capture_output=True, text=True)
-        Q, R = TUNING["Q"], np.diag(np.square(L.RADAR_SIGMA))
-        p = [L.GUIDANCE[name] for name in L.GUIDANCE_PARAMS]
-        head = np.concatenate([work.x0, work.P0.ravel("F"), Q.ravel("F"), R.ravel("F"), [TUNING["kappa"]], p])
-        lines = [" ".join(f"{v:.17g}" for v in head), str(len(work.base_times))]
-        lines += [" ".join(f"{v:.17g}" for v in np.concatenate([[t], z, q]))
-                  for t, z, q in zip(work.base_times, work.z, work.q)]
-        stdin = "\n".join(lines)
+        stdin = _c_loop_input(work)
         out = {}
         for family in FILTERS:
             proc = subprocess.run([str(exe), family, str(steps)], input=stdin, capture_output=True,
@@ -191,15 +222,31 @@ def time_c_loop(work: Workload, steps: int, instructions: bool = False) -> dict[
                 raise RuntimeError(f"c_loop: {family} step returned a failure code")
             out[family] = {"us_per_step": float(value)}
             if instructions and shutil.which("valgrind"):
-                out[family]["instructions_per_step"] = _instructions_per_step(exe, family, stdin, Path(tmp))
+                parts = {part: _instructions_per_step(exe, family, part, stdin, Path(tmp)) for part in PARTS}
+                out[family]["instructions_per_step"] = parts["step"]
+                out[family]["instructions_by_part"] = parts
     return out
 
 
-def _instructions_per_step(exe: Path, family: str, stdin: str, tmp: Path) -> float:
-    """Callgrind's instruction count of 1100 steps minus that of 100 steps, per step."""
+def _c_loop_input(work: Workload) -> str:
+    Q, R = TUNING["Q"], np.diag(np.square(L.RADAR_SIGMA))
+    p = [L.GUIDANCE[name] for name in L.GUIDANCE_PARAMS]
+    head = np.concatenate([work.x0, work.P0.ravel("F"), Q.ravel("F"), R.ravel("F"), [TUNING["kappa"]], p])
+    lines = [" ".join(f"{v:.17g}" for v in head), str(len(work.base_times))]
+    lines += [" ".join(f"{v:.17g}" for v in np.concatenate([[t], z, q]))
+              for t, z, q in zip(work.base_times, work.z, work.q)]
+    return "\n".join(lines)
+
+
+def _instructions_per_step(exe: Path, family: str, part: str, stdin: str, tmp: Path) -> float:
+    """Callgrind's instruction count of 1100 calls (steps) of ``part`` minus that of 100, per call:
+    the first 55 s of the flight at 20 Hz, no event inside (event steps are 4 in a flight)."""
     def count(steps: int) -> int:
         proc = subprocess.run(["valgrind", "--tool=callgrind", f"--callgrind-out-file={tmp}/callgrind.out",
-                               str(exe), family, str(steps)], input=stdin, capture_output=True, text=True, check=True)
+                               str(exe), family, str(steps), part], input=stdin, capture_output=True, text=True,
+                              check=True)
+        if int(proc.stdout.split()[1]):
+            raise RuntimeError(f"c_loop: {family} {part} returned a failure code")
         return int(re.search(r"Collected : (\d+)", proc.stderr).group(1))
     return (count(1100) - count(100)) / 1000
 
