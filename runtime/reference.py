@@ -342,9 +342,8 @@ class ManifoldReference:
             y = ReferenceFilter.innovation(z, z_pred, mask, wrap)
             S = _sym(H @ self.P @ H.T + R)
             K = cho_solve(cho_factor(S, lower=True), H @ self.P).T
-            I_KH = np.eye(self.ne) - K @ H
             self.x = self.retract(self.x, K @ y)
-            self.P = _sym(I_KH @ self.P @ I_KH.T + K @ R @ K.T)
+            self.P = _sym(self.P - K @ S @ K.T)
         else:
             offsets, weights = self._sigma_offsets()
             predicted = [self._h(name, t, self.retract(self.x, d), q) for d in offsets]

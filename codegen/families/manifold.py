@@ -24,7 +24,8 @@ noise as the Kalman family (``kalman.process_noise``), in error coordinates: an 
 n_error x n_error Q gives Q_d = Q dt; a model with ``noise()`` gives Q_d = G Q Gᵀ dt with
 G = ∂(x ⊟ x̂)/∂x · ∂f/∂w at the step start.
 
-**Update (MEKF).** H = ∂h(x̂ ⊞ δ)/∂δ at δ = 0 (CasADi); Joseph-form covariance; δ̂ = K y; then
+**Update (MEKF).** H = ∂h(x̂ ⊞ δ)/∂δ at δ = 0 (CasADi); with S = L Lᵀ and U = L⁻¹ H P,
+δ̂ = K y = Uᵀ L⁻¹ y and P⁺ = P - K S Kᵀ = P - Uᵀ U (lower triangle, mirrored); then
 the multiplicative reset x̂⁺ = x̂ ⊞ δ̂ (quaternion renormalised against round-off). The
 covariance is *not* transported to the reset point (the first-order reset of Lefferts, Markley &
 Shuster 1982, as in paper 000); the omitted term is O(|δθ̂| P).
@@ -99,6 +100,19 @@ class Chart:
               for i, e in self.quaternions]
         return self._assemble(self.n_error, qs, [(e, x[i] - x_ref[i]) for i, e in self.ordinary])
 
+    def retract_linear(self, x, delta) -> ca.SX:
+        """q ⊗ [δθ/2; 1] per quaternion (not renormalised), x + δ otherwise: equal to x ⊞ δ to
+        first order at δ = 0, so its Jacobian there is ∂(x ⊞ δ)/∂δ (½ L(q̂) on the vector part)
+        without the series and trigonometry of Exp."""
+        qs = [(i, quat.hamilton(x[i:i + 4], ca.vertcat(0.5 * delta[e:e + 3], 1))) for i, e in self.quaternions]
+        return self._assemble(self.n, qs, [(i, x[i] + delta[e]) for i, e in self.ordinary])
+
+    def local_linear(self, x, x_ref) -> ca.SX:
+        """2 vec(q_ref⁻¹ ⊗ q) per quaternion (q and q_ref unit), x - x_ref otherwise: equal to
+        x ⊟ x_ref to first order at x = x_ref (Log(q) = 2 vec(q) + O(|δθ|³)), without atan2."""
+        qs = [(e, 2 * quat.hamilton(quat.conjugate(x_ref[i:i + 4]), x[i:i + 4])[:3]) for i, e in self.quaternions]
+        return self._assemble(self.n_error, qs, [(e, x[i] - x_ref[i]) for i, e in self.ordinary])
+
     def project(self, x) -> ca.SX:
         """Every quaternion onto the unit sphere (q / |q|); ordinary states unchanged."""
         qs = [(i, quat.normalize(x[i:i + 4])) for i, _ in self.quaternions]
@@ -129,10 +143,12 @@ class ManifoldFunctions:
         step = chart.project(fns.fd_inline(t, dt, x, u, p))
         self.step = ca.Function(f"{prefix}_manifold_fd", [t, dt, x, u, p], [step],
                                 ["t", "dt", "x", "u", "p"], ["x"], _CALLED)
+        # F and H at δ = 0 through the first-order chart (same derivatives, far fewer operations),
+        # sparse: structural zeros (e.g. a bias that does not depend on the attitude) cost nothing
         zero = ca.DM.zeros(ne)
-        moved = chart.local(chart.project(fns.fd_inline(t, dt, chart.retract(x, delta), u, p)), step)
+        moved = chart.local_linear(chart.project(fns.fd_inline(t, dt, chart.retract_linear(x, delta), u, p)), step)
         F = ca.substitute(ca.jacobian(moved, delta), delta, zero)
-        self.step_and_jac = ca.Function(f"{prefix}_manifold_fd_and_jac", [t, dt, x, u, p], [step, ca.densify(F)],
+        self.step_and_jac = ca.Function(f"{prefix}_manifold_fd_and_jac", [t, dt, x, u, p], [step, F],
                                         ["t", "dt", "x", "u", "p"], ["x", "F"], _CALLED)
         # ∂(x ⊟ x̂)/∂x at x = x̂ (n_e x n): maps state-space noise into error coordinates
         J = ca.substitute(ca.jacobian(chart.local(x, x_ref), x), x, x_ref)
@@ -140,9 +156,9 @@ class ManifoldFunctions:
         self.h, self.jac_h = {}, {}
         for name, meas in model.measurements.items():
             q = ca.SX.sym("q", meas.q.shape[0])
-            z = fns.h[name](t, chart.retract(x, delta), u, p, q)
+            z = fns.h[name](t, chart.retract_linear(x, delta), u, p, q)
             H = ca.substitute(ca.jacobian(z, delta), delta, zero)
-            self.jac_h[name] = ca.Function(f"{prefix}_manifold_jac_h_{name}", [t, x, u, p, q], [ca.densify(H)],
+            self.jac_h[name] = ca.Function(f"{prefix}_manifold_jac_h_{name}", [t, x, u, p, q], [H],
                                            ["t", "x", "u", "p", "q"], ["H"], _CALLED)
             self.h[name] = fns.h[name]
 
@@ -247,13 +263,17 @@ def mekf_update_expr(mf: ManifoldFunctions, ms: ManifoldSymbols, name: str, msym
     H = ca.diag(mask) @ mf.jac_h[name](t, x, s["u"], s["p"], msym["q"])
     R = masked_noise(msym["R"], mask)
     y = innovation(msym["z"], z_pred, mask, wrap)
-    S = linalg.symmetrize(H @ P @ H.T + R)
+    HP = H @ P                                       # sparse H: structural zeros cost nothing
+    HPH = linalg.sandwich(H, P)
+    S = linalg.symmetric(R.shape[0], lambda i, j: HPH[i, j] + linalg.symmetric_part(R, i, j))
     L, ok = linalg.cholesky(S)
-    K = linalg.cholesky_solve(L, H @ P).T           # K = P Hᵀ S⁻¹
-    I_KH = ca.SX.eye(P.shape[0]) - K @ H
-    x_new = mf.retract(x, K @ y)                     # multiplicative reset
-    P_new = linalg.symmetrize(I_KH @ P @ I_KH.T + K @ R @ K.T)
-    nis = ca.sumsqr(linalg.solve_lower(L, y))
+    # With U = L⁻¹ H P: K = Uᵀ L⁻¹, K y = Uᵀ L⁻¹ y and K S Kᵀ = Uᵀ U (as the Kalman EKF and UKF)
+    U = linalg.solve_lower(L, HP)
+    white = linalg.solve_lower(L, y)
+    x_new = mf.retract(x, U.T @ white)               # multiplicative reset
+    UtU = linalg.gram(U)
+    P_new = linalg.symmetric(P.shape[0], lambda i, j: linalg.symmetric_part(P, i, j) - UtU[i, j])
+    nis = ca.sumsqr(white)
     finite = inputs_finite(ms, msym)
     return x_new, P_new, y, S, ok * linalg.psd_flag(P), nis, finite
 
@@ -263,7 +283,8 @@ def mekf_kernels(model: Model, symbols: Symbols, fns: ModelFunctions) -> Family:
     mf, ms = ManifoldFunctions(model, fns), ManifoldSymbols(model, symbols)
     s, P, Q = symbols.sym, ms.sym["P"], ms.sym["Q"]
     x_pred, F = mf.step_and_jac(s["t"], s["dt"], s["x"], s["u"], s["p"])
-    P_pred = linalg.symmetrize(F @ P @ F.T + error_process_noise(model, mf, symbols, Q, s["x"], s["t"], s["dt"]))
+    FPF, Qd = linalg.sandwich(F, P), error_process_noise(model, mf, symbols, Q, s["x"], s["t"], s["dt"])
+    P_pred = linalg.symmetric(P.shape[0], lambda i, j: FPF[i, j] + linalg.symmetric_part(Qd, i, j))
     doc = _predict_doc(model, "Multiplicative EKF", "RK4 then |q| = 1; P = F P F^T + Q_d, F = d(f_d(x (+) d) (-) "
                        "f_d(x))/dd in error coordinates")
     predict = predict_kernel("mekf_predict", doc, ms, mf.chart, x_pred, P_pred, linalg.psd_flag(P),
@@ -273,7 +294,7 @@ def mekf_kernels(model: Model, symbols: Symbols, fns: ModelFunctions) -> Family:
         msym, marg = ms.measurement(name)
         upd = mekf_update_expr(mf, ms, name, msym, meas.wrap)
         kernels.append(make_kernel(
-            f"mekf_update_{name}", f"Multiplicative EKF update with '{name}': H = dh(x (+) d)/dd, Joseph form, "
+            f"mekf_update_{name}", f"Multiplicative EKF update with '{name}': H = dh(x (+) d)/dd, P - K S K^T, "
             "reset x = x (+) K y (masked, gated).", symbols, msym, marg, UPDATE_INPUTS,
             update_outputs(mf.chart, upd, s["x"], P, msym)))
         kernels.append(compose_step(f"mekf_step_{name}", predict, kernels[-1]))
