@@ -52,13 +52,14 @@ from symkf.models import Model, get_model
 from . import c_writer, families  # noqa: F401  (families register themselves on import)
 from .discretize import continuous_dynamics, measurement_function
 from .kernels import FAMILIES, ModelFunctions, Symbols, model_kernels
+from .scaling import model_for
 from .spec import Bundle, CodegenConfig
 
 CODEGEN_DIR = Path(__file__).resolve().parent
 #: Codegen modules every model's code depends on (their source is part of every content hash).
 FRAMEWORK_MODULES = ("symkf.codegen.kernels", "symkf.codegen.discretize", "symkf.codegen.linalg",
                      "symkf.codegen.spec", "symkf.codegen.c_writer", "symkf.codegen.build",
-                     "symkf.models.base")
+                     "symkf.codegen.scaling", "symkf.models.base")
 #: Files of a bundle exported by ``symkf build X --out DIR`` (``{name}`` = the model's name).
 BUNDLE_FILES = ("{name}.c", "{name}.h", "Makefile", "manifest.json", "lib{name}.so")
 
@@ -201,6 +202,7 @@ def _symkf_version() -> str:
 
 def generated_hash(model: Model, config: CodegenConfig) -> str:
     """Hash of what is generated, independent of the compiler (no generation needed)."""
+    model = model_for(model, config)
     digest = hashlib.sha256()
     digest.update(continuous_dynamics(model).serialize().encode())
     for name in model.measurements:
@@ -224,8 +226,8 @@ def content_hash(model: Model, config: CodegenConfig, cc: str, generated: str | 
 # ---------------------------------------------------------------------- generate
 def generate(model, config: CodegenConfig | None = None) -> Bundle:
     """Model -> kernels (CasADi Functions) for every filter family the model asks for."""
-    model = get_model(model)
-    config = config or default_config(model)
+    config = config or default_config(get_model(model))
+    model = model_for(get_model(model), config)
     symbols, functions = Symbols(model), ModelFunctions(model, config)
     kernels, filters = model_kernels(model, symbols, functions), []
     for family in model.filters:
@@ -387,7 +389,7 @@ def compile_bundle(directory: Path, name: str, cc: str, config: CodegenConfig, b
     compiler per core), each object cached by the hash of its C text, compiler and flags;
     otherwise from the single ``<name>.c``.
     """
-    flags = c_writer.STRICT_FLAGS.split() + config.optimization.split() + ["-fPIC"]
+    flags = c_writer.STRICT_FLAGS.split() + config.optimization.split() + ["-fPIC"] + c_writer.precision_flags(config)
     manifest = json.loads((directory / "manifest.json").read_text())
     hidden = flags + ["-fvisibility=hidden"]        # only the header's SYMKF_API functions are exported
     if bundle is None:

@@ -538,12 +538,27 @@ def _dimension_lines(model: str, desc: dict) -> list[str]:
         for v in desc["params"]:
             lines.append(f"#define {M}_P_{_macro(v['name'])}_DEFAULT {_number(v['default'])} /* {v['unit']} */")
         lines.append(f"#define {M}_P_DEFAULT {{" + ", ".join(_number(v["default"]) for v in desc["params"]) + "}")
+    lines += _scaling_lines(M, desc)
     lines += ["", "/* ---- Default measurement noise (1 sigma per component, in its unit) ---- */"]
     for name, meas in desc["measurements"].items():
         units = ", ".join(o["unit"] for o in meas["outputs"])
         lines.append(f"#define {M}_SIGMA_{_macro(name)} {{" + ", ".join(_number(s) for s in meas["sigma"])
                      + f"}} /* {units} */")
     return lines + [""]
+
+
+def _scaling_lines(M: str, desc: dict) -> list[str]:
+    """The state scaling the model declares (codegen/scaling.py) and whether these kernels use it."""
+    info = desc.get("state_scaling")
+    if not info:
+        return []
+    used = info["kernels_use_scaled_state"]
+    return ["", "/* ---- State scaling: x = OFFSET + SCALE * x~ per state (scales are powers of two). "
+            + ("The filters below carry x~ and P~ = P / (SCALE SCALE^T). ---- */" if used else
+               "This build carries the physical x and P (unscaled). ---- */"),
+            f"#define {M}_STATE_SCALE {{" + ", ".join(_number(v) for v in info["scale"]) + "}",
+            f"#define {M}_STATE_OFFSET {{" + ", ".join(_number(v) for v in info["offset"]) + "}",
+            f"#define {M}_SCALED_STATE {int(bool(used))}"]
 
 
 def model_constants(model: str) -> list[tuple[str, str, str]]:
@@ -635,7 +650,7 @@ def header(bundle: Bundle, content_hash: str, compiler: str = "cc", flags: str =
              f" * Paper: {desc.get('paper', '')}",
              f" * Content hash: {content_hash}",
              _PREAMBLE.format(model=model, compiler=compiler, flags=flags),
-             f"#ifndef {guard}", f"#define {guard}", "",
+             f"#ifndef {guard}", f"#define {guard}", "", *_precision_lines(bundle),
              "#ifndef casadi_real", "#ifdef SYMKF_FLOAT", "#define casadi_real float", "#else",
              "#define casadi_real double", "#endif", "#endif", "",
              "/* The exported API (everything else is static, or hidden under -fvisibility=hidden). */",
@@ -653,6 +668,22 @@ def header(bundle: Bundle, content_hash: str, compiler: str = "cc", flags: str =
         lines += _function_doc(model, kernel)
     lines += ["#ifdef __cplusplus", "}", "#endif", f"#endif /* {guard} */", ""]
     return ascii_text("\n".join(lines))
+
+
+def _precision_lines(bundle: Bundle) -> list[str]:
+    """A float build (precision="float") is single precision by itself: its header defines SYMKF_FLOAT."""
+    if bundle.config.precision != "float":
+        return []
+    lines = ["/* This bundle was generated for single precision (precision=\"float\"): casadi_real is float."]
+    if bundle.config.scaled:
+        lines += [" * Its filters carry the SCALED state x~ = (x - offset) / scale and P~ = P / (scale scale^T):",
+                  " * see the _STATE_SCALE and _STATE_OFFSET arrays below; z, R, y and S are not scaled."]
+    return lines + [" */", "#ifndef SYMKF_FLOAT", "#define SYMKF_FLOAT", "#endif", ""]
+
+
+def precision_flags(config) -> list[str]:
+    """Extra compiler flags of a float build: any implicit promotion to double is an error."""
+    return ["-Wdouble-promotion"] if config.precision == "float" else []
 
 
 # ---------------------------------------------------------------------- Makefile

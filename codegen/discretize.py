@@ -25,6 +25,7 @@ past t + dt, so both give the same numbers (the empty part only adds zeros).
 from __future__ import annotations
 
 import casadi as ca
+import numpy as np
 
 from symkf.models.base import Model
 
@@ -33,6 +34,20 @@ FUNCTION_OPTIONS = {"cse": True, "allow_duplicate_io_names": True}
 #: truth simulator uses the same inset, scenarios/launcher/truth.py).
 EVENT_INSET = 1e-6
 INTEGRATORS = ("rk4", "euler")
+#: Float spacings of the latest event time that a float build's inset spans at least: 1e-6 s is
+#: below float's resolution of time there (434.3 s: 3.1e-5 s), so t_e - 1e-6 would round to t_e and
+#: the segment before the event would be integrated with the after-event dynamics (measured: a
+#: 1.4 m/s speed defect in the launcher's step across burnout).
+FLOAT_INSET_SPACINGS = 8
+
+
+def event_inset(events, precision: str = "double") -> float:
+    """How far before an event the segment ending there evaluates the dynamics: EVENT_INSET, or in
+    a float build at least FLOAT_INSET_SPACINGS float spacings of the latest event time."""
+    if precision != "float" or not len(events):
+        return EVENT_INSET
+    latest = np.float32(max(abs(float(e)) for e in events))
+    return max(EVENT_INSET, FLOAT_INSET_SPACINGS * float(np.spacing(latest)))
 
 
 def continuous_dynamics(model: Model) -> ca.Function:
@@ -47,28 +62,34 @@ def rk4(f, t, dt, x, u, p, w, substeps: int, latest=None):
     return integrate(f, t, dt, x, u, p, w, substeps, "rk4", latest)
 
 
-def integrate(f, t, dt, x, u, p, w, substeps: int, method: str = "rk4", latest=None):
-    """``substeps`` steps of RK4 or explicit Euler from t to t + dt (no event handling)."""
+def integrate(f, t, dt, x, u, p, w, substeps: int, method: str = "rk4", latest=None, y0=None):
+    """``substeps`` steps of RK4 or explicit Euler from t to t + dt (no event handling).
+
+    ``y0`` given: the increment form. The state is x + y, y starts at y0 and the increment y at
+    t + dt is returned, so nothing is rounded at the magnitude of x (a float UKF's sigma-point
+    deviations, codegen/families/kalman.py); without it, x(t + dt) as always.
+    """
     if substeps < 1:
         raise ValueError(f"integrator substeps must be >= 1, got {substeps}")
     if method not in INTEGRATORS:
         raise ValueError(f"integrator: expected one of {INTEGRATORS}, got '{method}'")
 
-    def rate(ti, xi):
-        return f(ti if latest is None else ca.fmin(ti, latest), xi, u, p, w)
+    def rate(ti, yi):
+        return f(ti if latest is None else ca.fmin(ti, latest), yi if y0 is None else x + yi, u, p, w)
 
+    y = x if y0 is None else y0
     h = dt / substeps
     for i in range(substeps):
         ti = t + i * h
-        k1 = rate(ti, x)
+        k1 = rate(ti, y)
         if method == "euler":
-            x = x + h * k1
+            y = y + h * k1
             continue
-        k2 = rate(ti + h / 2, x + h / 2 * k1)
-        k3 = rate(ti + h / 2, x + h / 2 * k2)
-        k4 = rate(ti + h, x + h * k3)
-        x = x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
-    return x
+        k2 = rate(ti + h / 2, y + h / 2 * k1)
+        k3 = rate(ti + h / 2, y + h / 2 * k2)
+        k4 = rate(ti + h, y + h * k3)
+        y = y + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+    return y
 
 
 def first_event_after(t, events, otherwise):
@@ -79,13 +100,27 @@ def first_event_after(t, events, otherwise):
     return result
 
 
-def event_split_step(f, t, dt, x, u, p, w, events, substeps: int, method: str = "rk4"):
-    """x(t + dt) integrated over [t, t_e] and [t_e, t + dt], t_e the first event in (t, t + dt)."""
+def event_split_step(f, t, dt, x, u, p, w, events, substeps: int, method: str = "rk4", inset: float = EVENT_INSET,
+                     lengths: bool = False, y0=None):
+    """x(t + dt) integrated over [t, t_e] and [t_e, t + dt], t_e the first event in (t, t + dt)
+    (with ``y0``: the increment form of :func:`integrate`).
+
+    ``lengths``: compute the two parts' lengths as min(t_e - t, dt) and dt minus that, never from
+    the absolute end time t + dt (a float build: at t = 433 s, float(t + dt) - t differs from dt by
+    up to 1.5e-5 s, a 3e-4 relative error of every step, measured as a 6e-4 m/s speed bias per step
+    in stage 2). Without it, the double build's form (cut - t, end - cut).
+    """
     end = t + dt
     event = first_event_after(t, events, end + 1.0)
+    if lengths:
+        first = ca.fmin(event - t, dt)
+        part = integrate(f, t, first, x, u, p, w, substeps, method, latest=event - inset, y0=y0)
+        return integrate(f, t + first, dt - first, *((part,) if y0 is None else (x,)), u, p, w, substeps, method,
+                         y0=None if y0 is None else part)
     cut = ca.fmin(event, end)
-    x_cut = integrate(f, t, cut - t, x, u, p, w, substeps, method, latest=event - EVENT_INSET)
-    return integrate(f, cut, end - cut, x_cut, u, p, w, substeps, method)
+    part = integrate(f, t, cut - t, x, u, p, w, substeps, method, latest=event - inset, y0=y0)
+    return integrate(f, cut, end - cut, *((part,) if y0 is None else (x,)), u, p, w, substeps, method,
+                     y0=None if y0 is None else part)
 
 
 def event_in_step(t, dt, events):
@@ -103,32 +138,42 @@ class EventBranches:
     propagated) once per branch and select the branch at run time.
     """
 
-    def __init__(self, model: Model, substeps: int, method: str = "rk4", split_events: bool = True):
+    def __init__(self, model: Model, substeps: int, method: str = "rk4", split_events: bool = True,
+                 precision: str = "double"):
         self.model, self.events = model, tuple(model.events) if split_events else ()
-        f = continuous_dynamics(model)
-        dt = ca.SX.sym("dt")
-        args = [model.t, dt, model.x, model.u, model.p, model.w]
-        names = ["t", "dt", "x", "u", "p", "w"]
-        t, x, u, p, w = model.t, model.x, model.u, model.p, model.w
+        self.branches = self._branches(substeps, method, precision, increment=False)
+        #: the same branches in increment form: f_inc(t, dt, x, y0, u, p, w) -> y (:func:`integrate`)
+        self.increment_branches = self._branches(substeps, method, precision, increment=True)
+
+    def _branches(self, substeps: int, method: str, precision: str, increment: bool) -> tuple:
+        model, f = self.model, continuous_dynamics(self.model)
+        t, dt, x, u, p, w = model.t, ca.SX.sym("dt"), model.x, model.u, model.p, model.w
+        y0 = ca.SX.sym("y0", model.nx) if increment else None
+        args = [t, dt, x] + ([y0] if increment else []) + [u, p, w]
+        names = ["t", "dt", "x"] + (["y0"] if increment else []) + ["u", "p", "w"]
+        out, tag = (["y"], "fd_increment") if increment else (["x_next"], "fd")
         if not self.events:
-            plain = integrate(f, t, dt, x, u, p, w, substeps, method)
-            self.branches = (ca.Function("fd", args, [plain], names, ["x_next"], FUNCTION_OPTIONS),)
-            return
-        # (t + dt) - t, not dt: the split branch's first part when no event is inside (same numbers)
-        plain = integrate(f, t, (t + dt) - t, x, u, p, w, substeps, method)
-        split = event_split_step(f, t, dt, x, u, p, w, self.events, substeps, method)
-        self.branches = (ca.Function("fd_plain", args, [plain], names, ["x_next"], FUNCTION_OPTIONS),
-                         ca.Function("fd_split", args, [split], names, ["x_next"], FUNCTION_OPTIONS))
+            plain = integrate(f, t, dt, x, u, p, w, substeps, method, y0=y0)
+            return (ca.Function(tag, args, [plain], names, out, FUNCTION_OPTIONS),)
+        # double: (t + dt) - t, not dt: the split branch's first part when no event is inside (same
+        # numbers); float: dt itself, as the split branch's lengths (event_split_step)
+        lengths = precision == "float"
+        plain = integrate(f, t, dt if lengths else (t + dt) - t, x, u, p, w, substeps, method, y0=y0)
+        split = event_split_step(f, t, dt, x, u, p, w, self.events, substeps, method,
+                                 event_inset(self.events, precision), lengths, y0)
+        return (ca.Function(f"{tag}_plain", args, [plain], names, out, FUNCTION_OPTIONS),
+                ca.Function(f"{tag}_split", args, [split], names, out, FUNCTION_OPTIONS))
 
     def function(self, name: str, inputs: list[ca.SX], input_names: list[str], outputs, output_names: list[str],
-                 options: dict) -> ca.Function:
+                 options: dict, branches: tuple | None = None) -> ca.Function:
         """``name``(inputs) -> ``outputs(fd)`` with fd each branch in turn: one SX Function without
         events, else an MX Function whose ``Function.conditional`` evaluates the plain branch, or
         the split one when an event lies in (t, t + dt] (``inputs`` start with t and dt)."""
+        branches = self.branches if branches is None else branches
         made = [ca.Function(f"{name}_{tag}", inputs, outputs(fd), input_names, output_names, options)
-                for tag, fd in zip(("plain", "split"), self.branches)]
+                for tag, fd in zip(("plain", "split"), branches)]
         if len(made) == 1:
-            return ca.Function(name, inputs, outputs(self.branches[0]), input_names, output_names, options)
+            return ca.Function(name, inputs, outputs(branches[0]), input_names, output_names, options)
         switch = ca.Function.conditional(f"{name}_branch", [made[0]], made[1])
         sym = [ca.MX.sym(n, *v.shape) for n, v in zip(input_names, inputs)]
         flag = event_in_step(sym[0], sym[1], self.events)
@@ -136,19 +181,21 @@ class EventBranches:
 
 
 def discrete_step(model: Model, f, t, dt, x, u, p, w, substeps: int, method: str = "rk4",
-                  split_events: bool = True):
+                  split_events: bool = True, precision: str = "double"):
     """x(t + dt) as one SX expression, split at the model's events when asked (and it has any):
     branch-free, both parts always integrated (for kernels that inline f_d; :class:`EventBranches`
-    evaluates only the part a step needs)."""
+    evaluates only the part a step needs). A float build uses its own inset and part lengths."""
     if split_events and model.events:
-        return event_split_step(f, t, dt, x, u, p, w, model.events, substeps, method)
+        return event_split_step(f, t, dt, x, u, p, w, model.events, substeps, method,
+                                event_inset(model.events, precision), lengths=precision == "float")
     return integrate(f, t, dt, x, u, p, w, substeps, method)
 
 
-def discrete_dynamics(model: Model, substeps: int, method: str = "rk4", split_events: bool = True) -> ca.Function:
+def discrete_dynamics(model: Model, substeps: int, method: str = "rk4", split_events: bool = True,
+                      precision: str = "double") -> ca.Function:
     """f_d(t, dt, x, u, p, w) -> x(t + dt) by RK4 (or Euler) with ``substeps`` sub-steps, split at
     the model's events unless ``split_events`` is False (the branching form, see :class:`EventBranches`)."""
-    branches = EventBranches(model, substeps, method, split_events)
+    branches = EventBranches(model, substeps, method, split_events, precision)
     model_args = [model.t, ca.SX.sym("dt"), model.x, model.u, model.p, model.w]
     return branches.function("fd", model_args, ["t", "dt", "x", "u", "p", "w"], lambda fd: [fd(*model_args)],
                              ["x_next"], FUNCTION_OPTIONS)

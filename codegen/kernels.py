@@ -148,6 +148,22 @@ class Propagation:
                 dict(FUNCTION_OPTIONS, never_inline=True))
         return self._columns[k]
 
+    def increment_columns(self, k: int) -> ca.Function:
+        """``<prefix>_increment_columns<k>``(t, dt, x, D, u, p) -> Y: column i of Y is the step of
+        x + D[:, i] as an increment of x (codegen/discretize.py ``integrate``'s increment form), one
+        function per event branch like :meth:`fd_columns`. A float UKF propagates its sigma-point
+        offsets with it, never forming differences of numbers of the state's magnitude."""
+        if ("increment", k) not in self._columns:
+            model = self.branches.model
+            t, dt, x, D = model.t, ca.SX.sym("dt"), ca.SX.sym("x", model.nx), ca.SX.sym("D", model.nx, k)
+            u, p = ca.SX.sym("u", len(model.inputs)), ca.SX.sym("p", len(model.params))
+            w = ca.DM.zeros(len(model.noises))
+            self._columns["increment", k] = self.branches.function(
+                f"{self.prefix}_increment_columns{k}", [t, dt, x, D, u, p], ["t", "dt", "x", "D", "u", "p"],
+                lambda inc: [ca.horzcat(*[inc(t, dt, x, D[:, i], u, p, w) for i in range(k)])], ["Y"],
+                dict(FUNCTION_OPTIONS, never_inline=True), self.branches.increment_branches)
+        return self._columns["increment", k]
+
 
 class ModelFunctions:
     """The model's own functions, each generated once in C and *called* by the filter kernels.
@@ -187,7 +203,7 @@ class ModelFunctions:
             return self._propagations[d]
         model, prefix = self.model, self.model.name + suffix
         options = dict(FUNCTION_OPTIONS, never_inline=True)
-        branches = EventBranches(model, int(d.substeps), d.integrator, d.split_events)
+        branches = EventBranches(model, int(d.substeps), d.integrator, d.split_events, self.config.precision)
         t, dt = model.t, ca.SX.sym("dt")
         x, u, p = ca.SX.sym("x", model.nx), ca.SX.sym("u", len(model.inputs)), ca.SX.sym("p", len(model.params))
         args, names = [t, dt, x, u, p], ["t", "dt", "x", "u", "p"]
@@ -210,7 +226,8 @@ class ModelFunctions:
         made = Propagation(
             branches.function(f"{prefix}_fd", args, names, lambda fd: [step(fd)], ["x"], options),
             ca.Function(f"{prefix}_fd_inline", args, [discrete_step(model, continuous_dynamics(model), *args, self.zero_w,
-                        int(d.substeps), d.integrator, d.split_events)], names, ["x"], FUNCTION_OPTIONS),
+                        int(d.substeps), d.integrator, d.split_events, self.config.precision)], names, ["x"],
+                        FUNCTION_OPTIONS),
             jac_fd, fd_and_jac, branches, prefix)
         self._propagations[d] = made
         return made

@@ -119,6 +119,27 @@ class CodegenConfig:
     def get(self, key: str, default=None):
         return dict(self.extra).get(key, default)
 
+    @property
+    def precision(self) -> str:
+        """"double" (default) or "float": the build's casadi_real (``precision="float"``)."""
+        value = self.get("precision", "double")
+        if value not in PRECISIONS:
+            raise ValueError(f"precision: expected one of {list(PRECISIONS)}, got {value!r}")
+        return value
+
+    @property
+    def scaled(self) -> bool:
+        """True if the filters work on the model's scaled state x~ = (x - offset) / scale
+        (codegen/scaling.py). Option ``scaling``: default on for float, off for double."""
+        value = self.get("scaling", self.precision == "float")
+        if not isinstance(value, bool):
+            raise ValueError(f"scaling: expected True or False, got {value!r}")
+        return value
+
+
+#: The floating-point types a build can use for casadi_real.
+PRECISIONS = ("double", "float")
+
 
 @dataclass(frozen=True)
 class FilterSpec:

@@ -117,6 +117,12 @@ class Model:
     nondifferentiable_ok: set[str] = field(default_factory=set)
     #: Unit-quaternion states (:meth:`quaternion_state`), in declaration order.
     quaternions: list[QuaternionState] = field(default_factory=list)
+    #: Per state: the scale and offset of the scaled state x~ = (x - offset) / scale that scaled
+    #: builds work on (:meth:`state`; codegen/scaling.py). Default 1 and 0.
+    state_scale: list[float] = field(default_factory=list)
+    state_offset: list[float] = field(default_factory=list)
+    #: True for the model codegen/scaling.py derives: its states are the scaled x~.
+    scaled_state: bool = False
     _symbols: dict[str, list[ca.SX]] = field(default_factory=lambda: {k: [] for k in "xupw"})
     _pending_q: tuple | None = None
 
@@ -132,9 +138,21 @@ class Model:
         self._symbols[kind].append(symbol)
         return symbol
 
-    def state(self, name: str, unit: str, description: str) -> ca.SX:
-        """Declare a state; returns its scalar symbol."""
-        return self._declare("x", self.states, name, unit, description)
+    def state(self, name: str, unit: str, description: str, scale: float = 1.0, offset: float = 0.0) -> ca.SX:
+        """Declare a state; returns its scalar symbol.
+
+        ``scale`` and ``offset`` (in the state's unit) describe well-conditioned numbers for it: a
+        scaled build (``precision="float"``, or ``scaling=True``) carries x~ = (x - offset) / scale,
+        so the offset should be near the values the state takes (e.g. the Earth's radius for a
+        geocentric radius) and the scale near its typical uncertainty. The scale is rounded to the
+        nearest power of two and the offset to the nearest single-precision number, so that the
+        transform is exact and the float C code and the double runtime agree on it bit for bit.
+        """
+        scale, offset = _scaling(self.name, name, scale, offset)
+        symbol = self._declare("x", self.states, name, unit, description)
+        self.state_scale.append(scale)
+        self.state_offset.append(offset)
+        return symbol
 
     def quaternion_state(self, name: str, description: str) -> ca.SX:
         """Declare a unit quaternion state (scalar-last ``[x, y, z, w]``, e.g. an attitude); returns
@@ -147,8 +165,8 @@ class Model:
             raise ModelError(f"model '{self.name}': symbol '{name}' is declared twice")
         index = self.nx
         error_index = index - len(self.quaternions)
-        components = [self._declare("x", self.states, f"{name}_{c}", "-", f"{description} ({c} component, "
-                                    "scalar-last unit quaternion)") for c in QUATERNION_SUFFIXES]
+        components = [self.state(f"{name}_{c}", "-", f"{description} ({c} component, scalar-last unit quaternion)")
+                      for c in QUATERNION_SUFFIXES]
         self.quaternions.append(QuaternionState(name, description, index, error_index))
         return ca.vertcat(*components)
 
@@ -326,4 +344,27 @@ class Model:
                 for m in self.measurements.values()},
             **({"quaternions": [qs.as_dict() for qs in self.quaternions], "error_state_dim": self.n_error}
                if self.quaternions else {}),
+            **({"state_scaling": {"scale": list(self.state_scale), "offset": list(self.state_offset),
+                                  "kernels_use_scaled_state": self.scaled_state}} if self.has_scaling else {}),
         }
+
+    @property
+    def has_scaling(self) -> bool:
+        """True if any state declares a scale or an offset other than 1 and 0."""
+        return any(s != 1.0 for s in self.state_scale) or any(o != 0.0 for o in self.state_offset)
+
+
+def _scaling(model: str, name: str, scale, offset) -> tuple[float, float]:
+    """A state's (scale, offset): scale a power of two > 0, offset a single-precision number."""
+    try:
+        scale, offset = float(scale), float(offset)
+    except (TypeError, ValueError):
+        raise ModelError(f"model '{model}': state '{name}': scale and offset must be numbers") from None
+    if not (np.isfinite(scale) and scale > 0) or not np.isfinite(offset):
+        raise ModelError(f"model '{model}': state '{name}': scale must be finite and > 0 and offset finite, "
+                         f"got scale={scale}, offset={offset}")
+    scale = float(2.0 ** np.round(np.log2(scale)))
+    if abs(offset) > 3.0e38 or not 1e-30 < scale < 1e30:
+        raise ModelError(f"model '{model}': state '{name}': scale {scale} or offset {offset} is outside the "
+                         "range of single precision")
+    return scale, float(np.float32(offset))

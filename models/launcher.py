@@ -116,6 +116,9 @@ RADAR_STATION_HEIGHTS_M = (0.0, 0.0, 0.0)
 #: The measurement of each station model (the spherical one is the paper preset).
 RADAR_MEASUREMENTS = {"spherical": "radar", "wgs84": "radar_wgs84"}
 
+#: Scales of the scaled state (our choice, codegen/scaling.py; rounded to powers of two): about the
+#: radar-converged 1-sigma of each state, angles of position in ~1 m on the ground (1 / R_EARTH).
+STATE_SCALE = {"V": 0.03, "gamma": 1e-5, "psi": 1e-5, "r": 1.0, "theta": 1.0 / R_EARTH, "phi": 1.0 / R_EARTH}
 #: Section 4, eq (9) and (10): initial estimation errors dx0 = x - x_hat (small and large).
 INITIAL_ERROR = {
     "small": (0.001, 1e-12, 1e-12, 0.0, 0.0, 0.0),          # eq (9): m/s, rad, rad, m, rad, rad
@@ -228,12 +231,14 @@ def build() -> Model:
     """The launcher model: dynamics eq (6) with forces eq (5), radar eq (7)."""
     m = Model("launcher", "KSLV-I launcher over a rotating Earth, three tracking radars",
               paper="Baek et al. 2005, J. Astron. Space Sci. 22(4) (paper 004)")
-    V = m.state("V", "m/s", "speed relative to the rotating Earth")
-    gamma = m.state("gamma", "rad", "flight-path angle above the local horizontal")
-    psi = m.state("psi", "rad", "heading, from East towards North")
-    r = m.state("r", "m", "distance from the Earth's centre")
-    theta = m.state("theta", "rad", "longitude")
-    phi = m.state("phi", "rad", "geocentric latitude")
+    # scale ~ the estimate's uncertainty, offset ~ where the state lives (the scaled state of a float
+    # build, codegen/scaling.py): longitude and latitude in units of ~1 m on the ground
+    V = m.state("V", "m/s", "speed relative to the rotating Earth", scale=STATE_SCALE["V"])
+    gamma = m.state("gamma", "rad", "flight-path angle above the local horizontal", scale=STATE_SCALE["gamma"])
+    psi = m.state("psi", "rad", "heading, from East towards North", scale=STATE_SCALE["psi"], offset=LAUNCH_HEADING)
+    r = m.state("r", "m", "distance from the Earth's centre", scale=STATE_SCALE["r"], offset=R_EARTH)
+    theta = m.state("theta", "rad", "longitude", scale=STATE_SCALE["theta"], offset=LAUNCH_LONGITUDE)
+    phi = m.state("phi", "rad", "geocentric latitude", scale=STATE_SCALE["phi"], offset=LAUNCH_LATITUDE)
     a0, a1, a2, b0, b1, flow2 = (m.param(name, unit, desc, GUIDANCE[name]) for name, unit, desc in (
         ("stage1_alpha_0", "rad", "stage-1 angle of attack at lift-off"),
         ("stage1_alpha_quadratic", "rad", "stage-1 angle of attack, coefficient of (t/t1)^2"),

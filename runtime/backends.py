@@ -62,11 +62,18 @@ class KernelInfo:
         return [(n, False) for n, _ in self.inputs] + [(n, True) for n, _ in self.outputs[:-1]]
 
 
-def _check_buffer(kernel: str, name: str, buffer: np.ndarray, shape: tuple[int, int]) -> None:
+def _check_buffer(kernel: str, name: str, buffer: np.ndarray, shape: tuple[int, int], dtype=np.float64) -> None:
     size = shape[0] * shape[1]
-    if buffer.dtype != np.float64 or buffer.size != size or not (
+    if buffer.dtype != dtype or buffer.size != size or not (
             buffer.flags.f_contiguous or buffer.ndim <= 1 or min(shape) == 1):
-        raise ValueError(f"{kernel}: buffer '{name}' must be float64 with {size} elements in column-major order")
+        raise ValueError(f"{kernel}: buffer '{name}' must be {np.dtype(dtype).name} with {size} elements in "
+                         "column-major order")
+
+
+def manifest_precision(manifest: dict) -> str:
+    """The build's casadi_real ("double" or "float") as its manifest records the codegen config."""
+    extra = dict(tuple(item) for item in manifest.get("config", {}).get("extra", []))
+    return extra.get("precision", "double")
 
 
 class CompiledBackend:
@@ -86,6 +93,9 @@ class CompiledBackend:
             raise StaleLibraryError(f"{library} was generated with content hash {embedded}, the manifest "
                                     f"says {manifest['content_hash']}: rebuild with `symkf build {self.model} --force`")
         self.kernels = {k["name"]: KernelInfo.from_manifest(k) for k in manifest["kernels"]}
+        #: The buffers' element type: float32 for a float build (precision="float"), else float64.
+        self.dtype = np.dtype(np.float32 if manifest_precision(manifest) == "float" else np.float64)
+        self._scalar = ctypes.c_float if self.dtype == np.float32 else ctypes.c_double
 
     @classmethod
     def from_directory(cls, directory: Path) -> "CompiledBackend":
@@ -101,7 +111,7 @@ class CompiledBackend:
         info = self.kernels[kernel]
         shapes = dict(info.inputs + info.outputs)
         for name, _ in info.pointer_names():
-            _check_buffer(kernel, name, buffers[name], shapes[name])
+            _check_buffer(kernel, name, buffers[name], shapes[name], self.dtype)
         pointers = (ctypes.c_void_p * max(len(info.pointer_names()), 1))(
             *[buffers[name].ctypes.data for name, _ in info.pointer_names()])
         function = getattr(self.lib, f"{self.model}_{kernel}_v")
@@ -119,14 +129,14 @@ class CompiledBackend:
         info = self.kernels[kernel]
         function = getattr(self.lib, f"{self.model}_{kernel}_run")
         how = [run_passing(name, shape, info) for name, shape in info.inputs]
-        function.argtypes = ([ctypes.c_int] + [ctypes.c_double if h == "value" else ctypes.c_void_p
+        function.argtypes = ([ctypes.c_int] + [self._scalar if h == "value" else ctypes.c_void_p
                                                for h in how if h != "omit"]
                              + [ctypes.c_void_p] * (len(info.carried) + 1))
         function.restype = ctypes.c_int
 
         def run(n_steps: int, *addresses: int) -> int:
             inputs, outputs = addresses[:len(how)], addresses[len(how):]
-            passed = [ctypes.c_double.from_address(a).value if h == "value" else a
+            passed = [self._scalar.from_address(a).value if h == "value" else a
                       for h, a in zip(how, inputs) if h != "omit"]
             return function(n_steps, *passed, *outputs)
         return run
@@ -154,6 +164,8 @@ class VirtualMachineBackend:
     """The same kernels evaluated by CasADi's virtual machine (no C compiler needed; slower)."""
 
     kind = "casadi-vm"
+    #: CasADi's VM evaluates in double, also for a float build's configuration.
+    dtype = np.dtype(np.float64)
 
     def __init__(self, bundle: Bundle, reason: str = ""):
         self.model = bundle.model_name

@@ -28,9 +28,39 @@ from .contract import as_array, covariance, read_only  # noqa: F401  (re-exporte
 PER_CALL = ("t", "dt", "u", "q", "z", "mask", "acc", "mag")
 
 
-def _buffer(shape: tuple[int, int]) -> np.ndarray:
+def _buffer(shape: tuple[int, int], dtype=np.float64) -> np.ndarray:
     """A zeroed column-major buffer: (r,) for a column vector, (r, c) for a matrix."""
-    return np.zeros(shape[0]) if shape[1] == 1 else np.zeros(shape, order="F")
+    return np.zeros(shape[0], dtype) if shape[1] == 1 else np.zeros(shape, dtype, order="F")
+
+
+class StateScaling:
+    """x = offset + scale x~, P = S P~ S (S = diag(scale)): the conversion between the physical
+    state a user gives and reads and the scaled state the kernels of a scaled build carry
+    (codegen/scaling.py). Done in double; scales are powers of two, so it is exact."""
+
+    def __init__(self, description: dict):
+        info = description["state_scaling"]
+        self.scale, self.offset = np.array(info["scale"]), np.array(info["offset"])
+        self.outer = np.outer(self.scale, self.scale)
+        #: Q is n x n in state units (additive noise) unless the model declares noises w.
+        self.scales_Q = not description.get("noises")
+
+    @staticmethod
+    def of(description: dict) -> "StateScaling | None":
+        info = description.get("state_scaling")
+        return StateScaling(description) if info and info["kernels_use_scaled_state"] else None
+
+    def x_to_kernel(self, x: np.ndarray) -> np.ndarray:
+        return (x - self.offset) / self.scale
+
+    def x_from_kernel(self, x: np.ndarray) -> np.ndarray:
+        return self.offset + self.scale * np.asarray(x, dtype=float)
+
+    def P_to_kernel(self, P: np.ndarray) -> np.ndarray:
+        return P / self.outer
+
+    def P_from_kernel(self, P: np.ndarray) -> np.ndarray:
+        return np.asarray(P, dtype=float) * self.outer
 
 
 @dataclass
@@ -80,6 +110,8 @@ class Filter:
         self.model = compiled.model
         self._backend = compiled.backend
         self.kernels = {name: self._backend.kernels[name] for name in self.spec.kernel_names()}
+        self._dtype = getattr(self._backend, "dtype", np.dtype(np.float64))
+        self._scaling = StateScaling.of(self.model)
         self._make_buffers()
         self.n = self._buffers["x"].size
         self._set_initial(x0, P0, Q, p, scalars)
@@ -100,9 +132,9 @@ class Filter:
             info = self.kernels[kernel]
             for name, shape in info.inputs + info.outputs[:-1]:
                 if measurement is not None and name in per_measurement:
-                    self.measurements[measurement].setdefault(name, _buffer(shape))
+                    self.measurements[measurement].setdefault(name, _buffer(shape, self._dtype))
                 else:
-                    self._buffers.setdefault(name, _buffer(shape))
+                    self._buffers.setdefault(name, _buffer(shape, self._dtype))
         for buffers in self.measurements.values():
             if "mask" in buffers:
                 buffers["mask"][:] = 1.0
@@ -157,30 +189,53 @@ class Filter:
     # ------------------------------------------------------------------ state and settings
     @property
     def x(self) -> np.ndarray:
-        """The state estimate (a read-only view of the buffer the C code writes)."""
-        return read_only(self._buffers["x"])
+        """The state estimate (a read-only view of the buffer the C code writes; a read-only
+        physical copy for a scaled build)."""
+        x = self._buffers["x"]
+        return read_only(x if self._scaling is None else self._scaling.x_from_kernel(x))
 
     @x.setter
     def x(self, value) -> None:
         x = contract.finite_array("x", value, self._buffers["x"].shape)
-        self._buffers["x"][:] = contract.unit_quaternions("x", x, self.model.get("quaternions", []))
+        x = contract.unit_quaternions("x", x, self.model.get("quaternions", []))
+        self._write_state("x", x if self._scaling is None else self._scaling.x_to_kernel(x))
 
     @property
     def P(self) -> np.ndarray:
-        """The covariance (read-only view); set it with a symmetric PSD matrix."""
-        return read_only(self._buffers["P"])
+        """The covariance (read-only view, or physical copy for a scaled build); set it with a
+        symmetric PSD matrix."""
+        P = self._buffers["P"]
+        return read_only(P if self._scaling is None else self._scaling.P_from_kernel(P))
 
     @P.setter
     def P(self, value) -> None:
-        self._buffers["P"][:] = covariance("P", value, self._buffers["P"].shape[0])
+        P = covariance("P", value, self._buffers["P"].shape[0])
+        self._write_state("P", P if self._scaling is None else self._scaling.P_to_kernel(P))
 
     @property
     def Q(self) -> np.ndarray:
-        return read_only(self._buffers["Q"])
+        Q = self._buffers["Q"]
+        return read_only(Q if not self._scales_Q else self._scaling.P_from_kernel(Q))
 
     @Q.setter
     def Q(self, value) -> None:
-        self._buffers["Q"][:] = covariance("Q", value, self._buffers["Q"].shape[0])
+        Q = covariance("Q", value, self._buffers["Q"].shape[0])
+        self._write_state("Q", Q if not self._scales_Q else self._scaling.P_to_kernel(Q))
+
+    @property
+    def _scales_Q(self) -> bool:
+        return self._scaling is not None and self._scaling.scales_Q
+
+    def _write_state(self, name: str, value: np.ndarray) -> None:
+        """Write a checked value; for a float build refuse one that float cannot hold (buffer unchanged)."""
+        if self._dtype != np.float64:
+            with np.errstate(over="ignore"):
+                converted = value.astype(self._dtype)
+            if not np.isfinite(converted).all():
+                raise ValueError(f"{name}: a value overflows {self._dtype.name} (|value| > "
+                                 f"{np.finfo(self._dtype).max:.3g} after scaling)")
+            value = converted
+        self._buffers[name][:] = value
 
     @property
     def p(self) -> np.ndarray:
@@ -448,9 +503,10 @@ class Filter:
         kernel = self.spec.step[name]
         info = self._backend.kernels[kernel]
         constants = {**self._buffers, **self.measurements[name]}
-        arrays = [np.ascontiguousarray(per_step[n], dtype=float) if n in info.per_step
-                  else np.asfortranarray(constants[n], dtype=float) for n, _ in info.inputs]
-        histories = {n: np.zeros((n_steps,) + self._buffers[n].shape[::-1]) for n in self.spec.state}
+        dtype = self._dtype
+        arrays = [np.ascontiguousarray(per_step[n], dtype=dtype) if n in info.per_step
+                  else np.asfortranarray(constants[n], dtype=dtype) for n, _ in info.inputs]
+        histories = {n: np.zeros((n_steps,) + self._buffers[n].shape[::-1], dtype) for n in self.spec.state}
         status = np.zeros(n_steps, dtype=np.intc)
         run = self._backend.run_function(kernel)
         if run is not None:
@@ -463,12 +519,15 @@ class Filter:
                 self._buffers[n][...] = histories[n][-1].T
             self.t = float(per_step["t"][-1] + per_step["dt"][-1]) if "t" in per_step else \
                 self.t + float(np.sum(per_step["dt"]))
+        x = histories["x"]
         P = np.transpose(histories["P"], (0, 2, 1)) if "P" in histories else None
-        return RunResult(histories["x"], P, status)
+        if self._scaling is not None:
+            x, P = self._scaling.x_from_kernel(x), None if P is None else self._scaling.P_from_kernel(P)
+        return RunResult(np.asarray(x, dtype=float), None if P is None else np.asarray(P, dtype=float), status)
 
     def _run_in_python(self, kernel, info, arrays, histories, status) -> None:
         """The run loop for the VM backend: the same kernel, step by step, on scratch buffers."""
-        buffers = {n: _buffer(shape) for n, shape in info.inputs + info.outputs[:-1]}
+        buffers = {n: _buffer(shape, self._dtype) for n, shape in info.inputs + info.outputs[:-1]}
         for (n, _), array in zip(info.inputs, arrays):
             if n not in info.per_step:
                 buffers[n].reshape(-1, order="F")[:] = array.reshape(-1, order="F")

@@ -123,15 +123,25 @@ def ekf_kernels(model: Model, symbols: Symbols, fns: ModelFunctions) -> Family:
 
 
 # ---------------------------------------------------------------------- UKF
-def sigma_points(x: ca.SX, P: ca.SX, kappa: ca.SX):
-    """Eq (1)-(2) of paper 004: points (columns), weights, and a 0/1 success flag."""
-    n = x.shape[0]
+def sigma_offsets(P: ca.SX, kappa: ca.SX):
+    """Eq (1)-(2) of paper 004 as offsets from the mean: 0, +/- columns of chol((n + kappa) P);
+    the weights, and a 0/1 success flag."""
+    n = P.shape[0]
     scale = n + kappa
     L, ok = linalg.cholesky(scale * P)
-    points = [x] + [x + L[:, i] for i in range(n)] + [x - L[:, i] for i in range(n)]
+    offsets = [None] + [L[:, i] for i in range(n)] + [-L[:, i] for i in range(n)]
     safe_scale = linalg.guarded(scale, scale > 0)     # n + kappa <= 0 is refused (SYMKF_ERR_DOMAIN)
     weights = [kappa / safe_scale] + [0.5 / safe_scale] * (2 * n)
-    return points, weights, ok * (scale > 0)
+    return offsets, weights, ok * (scale > 0)
+
+
+def sigma_points(x: ca.SX, P: ca.SX, kappa: ca.SX):
+    """Eq (1)-(2) of paper 004: points (columns), weights, and a 0/1 success flag."""
+    offsets, weights, ok = sigma_offsets(P, kappa)
+    n = x.shape[0]
+    L = offsets[1:n + 1]
+    points = [x] + [x + L[i] for i in range(n)] + [x - L[i] for i in range(n)]
+    return points, weights, ok
 
 
 def _weighted_mean(points: list[ca.SX], weights: list, wrap: tuple[bool, ...] | None = None) -> ca.SX:
@@ -149,6 +159,8 @@ def _angle_difference(a: ca.SX, b: ca.SX, wrap: tuple[bool, ...]) -> ca.SX:
 
 
 def ukf_predict_expr(symbols: Symbols, fns: ModelFunctions, x, P, t, dt, Q):
+    if fns.config.precision == "float":
+        return ukf_predict_deviations(symbols, fns, x, P, t, dt, Q)
     s = symbols.sym
     points, weights, ok = sigma_points(x, P, s["kappa"])
     fd = fns.for_filter("ukf").fd_columns(len(points))         # one call, split only at an event
@@ -160,14 +172,37 @@ def ukf_predict_expr(symbols: Symbols, fns: ModelFunctions, x, P, t, dt, Q):
     return x_pred, linalg.symmetrize(P_pred), ok
 
 
+def ukf_predict_deviations(symbols: Symbols, fns: ModelFunctions, x, P, t, dt, Q):
+    """The UKF prediction of a float build, in deviation form: each sigma point's offset d_i is
+    propagated as an increment of x (x + d_i -> x + y_i, codegen/discretize.py), the mean is
+    x + sum w_i y_i and the covariance sum w_i (y_i - ybar)(y_i - ybar)^T + Q_d. The same numbers as
+    :func:`ukf_predict_expr` in exact arithmetic; in float, the deviations are never formed as
+    differences of numbers of the state's magnitude (a geocentric radius near 6.6e6 m, or an
+    altitude of 3e5 m, has a float spacing of 0.5 m or 0.03 m against a 1-sigma of ~0.5 m)."""
+    s = symbols.sym
+    offsets, weights, ok = sigma_offsets(P, s["kappa"])
+    D = ca.horzcat(ca.SX.zeros(x.shape), *offsets[1:])
+    Y = fns.for_filter("ukf").increment_columns(len(offsets))(t, dt, x, D, s["u"], s["p"])  # split only at an event
+    moved = [Y[:, i] for i in range(len(offsets))]
+    mean = _weighted_mean(moved, weights)
+    P_pred = sum((w * (y - mean) @ (y - mean).T for w, y in zip(weights, moved)),
+                 ca.SX.zeros(P.shape)) + process_noise(symbols, fns, Q, x, t, dt)
+    return x + mean, linalg.symmetrize(P_pred), ok
+
+
 def ukf_update_expr(symbols: Symbols, fns: ModelFunctions, name: str, msym: dict, wrap, x, P, t):
     s = symbols.sym
     mask = msym["mask"]
     points, weights, ok = sigma_points(x, P, s["kappa"])
+    deviations = None
+    if fns.config.precision == "float":      # the offsets themselves, not (x + d_i) - x rounded
+        offsets, weights, ok = sigma_offsets(P, s["kappa"])
+        deviations = [ca.SX.zeros(x.shape)] + offsets[1:]
+        points = [x] + [x + d for d in offsets[1:]]
     predicted = [fns.h[name](t, pt, s["u"], s["p"], msym["q"]) for pt in points]
     z_pred = _weighted_mean(predicted, weights, wrap)
     dz = [mask * _angle_difference(zi, z_pred, wrap) for zi in predicted]
-    dx = [pt - x for pt in points]
+    dx = deviations if deviations is not None else [pt - x for pt in points]
     R = masked_noise(msym["R"], mask)
     S = linalg.symmetrize(sum((w * d @ d.T for w, d in zip(weights, dz)), ca.SX.zeros(R.shape)) + R)
     Pxz = sum((w * a @ b.T for w, a, b in zip(weights, dx, dz)), ca.SX.zeros(x.shape[0], R.shape[0]))

@@ -1,0 +1,1 @@
+"""Single precision beside double: ``symkf bench float`` (scenarios/float/bench.py)."""

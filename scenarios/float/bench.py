@@ -1,0 +1,142 @@
+"""Single precision beside double: every figure from the float build (``precision="float"``)
+next to the same figure from the default double build, on the same draws.
+
+    symkf bench float [--runs 5] [--attitude-runs 2] [--json] [--out FILE] [--skip-attitude] [--skip-marg]
+
+- launcher (paper 004): the 20 Hz small-error case (eq 9) of the campaign (preset ``correct``,
+  seed 2005): ``--runs`` Monte Carlo runs of the whole flight through the EKF and the UKF, each
+  run by the campaign's own task (:func:`symkf.scenarios.launcher.campaign.run_chunk`) once per
+  build. Whole-flight RMS (eq 11) of r and V, refused steps (status other than 0 or gated), and
+  float / double. The float build carries the scaled state (codegen/scaling.py).
+- attitude (paper 000, scenario I): ``--attitude-runs`` runs of ``--attitude-duration`` s, MEKF
+  and UKF (:func:`symkf.scenarios.attitude.compare.one_run`): attitude RMS over the second half.
+- marg (paper 001, BROAD trials in ``$SYMKF_DATA_DIR/broad``): the generated MEKF of
+  ``models/marg_ekf.py`` and the gradient-descent filter (simplified form, beta = 0.041): mean
+  total RMSE over the trials.
+"""
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from symkf.models import launcher as L
+from symkf.scenarios.campaign import model_key
+
+PRECISIONS = ("double", "float")
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("--runs", type=int, default=5, help="launcher Monte Carlo runs (default 5)")
+    parser.add_argument("--attitude-runs", type=int, default=2, help="attitude Monte Carlo runs (default 2)")
+    parser.add_argument("--attitude-duration", type=float, default=600.0, help="attitude seconds per run (default 600)")
+    parser.add_argument("--skip-attitude", action="store_true")
+    parser.add_argument("--skip-marg", action="store_true")
+    parser.add_argument("--json", action="store_true", help="print the results as JSON only")
+    parser.add_argument("--out", type=Path, default=None, help="also write the JSON here")
+
+
+def codegen(precision: str) -> dict:
+    """The codegen overrides of a precision (the double build is the default configuration)."""
+    return {} if precision == "double" else {"precision": precision}
+
+
+def launcher(runs: int, seed: int = 2005) -> dict:
+    """Whole-flight RMS and refused steps of EKF and UKF, 20 Hz small error, per precision."""
+    from symkf.scenarios.launcher import campaign as C
+    case, out = C.Case(20, "small"), {}
+    for precision in PRECISIONS:
+        start = time.perf_counter()
+        chunk = C.run_chunk(model_key("launcher", **codegen(precision)), case, seed, (0, runs), L.T_INSERTION, C.TUNING)
+        for family in C.FILTERS:
+            rms = chunk.errors[family].rms()
+            whole = C.whole_flight_mean(np.where(C.ANGLE_STATES, np.degrees(rms), rms))
+            failed = chunk.per_run[family][:, C.PER_RUN_COLUMNS.index("failed_steps")]
+            out.setdefault(family, {})[precision] = {
+                "r_rms_m": float(whole[3]), "V_rms_m_s": float(whole[0]), "refused_steps": int(failed.sum()),
+                "runs": runs, "filter_seconds": chunk.wall_s[family], "wall_seconds": time.perf_counter() - start}
+    return out
+
+
+def attitude(runs: int, duration: float, seed: int = 2008) -> dict:
+    """Attitude RMS (deg) over the second half of scenario I, MEKF and UKF, per precision."""
+    from symkf.scenarios.attitude import compare as A
+    out = {}
+    for precision in PRECISIONS:
+        key = model_key("attitude", **codegen(precision))
+        results = [A.one_run(key, "I", duration, A.SCENARIO_I_BIAS, seed, run, A.DEFAULT_KAPPA) for run in range(runs)]
+        for family in A.FILTERS:
+            half = [r[family]["angle"][len(r[family]["angle"]) // 2:] for r in results]
+            out.setdefault(family, {})[precision] = {
+                "attitude_rms_deg": float(np.sqrt(np.mean(np.square(half)))),
+                "refused_steps": int(sum(r[family]["failed"] for r in results)), "runs": runs,
+                "duration_s": duration}
+    return out
+
+
+def marg() -> dict:
+    """Mean total RMSE (deg) over the BROAD trials: MEKF and gradient descent (simple, beta 0.041)."""
+    from symkf.models.marg import BETA_MADGWICK
+    from symkf.runtime import load
+    from symkf.runtime.marg import MargFilter
+    from symkf.scenarios.marg import ekf
+    from symkf.scenarios.marg.data import broad_trials, data_dir, load_recording, run_recording
+    from symkf.scenarios.marg.metric import broad_errors
+    try:
+        recordings = [load_recording(path) for path in broad_trials(data_dir() / "broad")]
+    except (OSError, ValueError) as exc:
+        return {"skipped": str(exc)}
+    out = {}
+    for precision in PRECISIONS:
+        mekf, gd = load("marg_ekf", **codegen(precision)), load("marg", **codegen(precision))
+        rows = {"mekf": [], "gd_simple": []}
+        refused = {"mekf": 0, "gd_simple": 0}
+        for recording in recordings:
+            run = ekf.run_recording(mekf, recording)
+            rows["mekf"].append(broad_errors(run.q, recording, frame="enu")["total"])
+            refused["mekf"] += run.failed_steps.size
+            run = run_recording(MargFilter(gd, "simple", "marg", beta=BETA_MADGWICK), recording)
+            rows["gd_simple"].append(broad_errors(run.q, recording)["total"])
+            refused["gd_simple"] += run.failed_steps.size
+        for family, values in rows.items():
+            out.setdefault(family, {})[precision] = {"mean_total_rmse_deg": float(np.mean(values)),
+                                                     "refused_steps": refused[family], "trials": len(values)}
+    return out
+
+
+def run(args) -> int:
+    if args.runs < 1 or args.attitude_runs < 1:
+        raise SystemExit("--runs and --attitude-runs must be >= 1")
+    result = {"launcher_20Hz_small": launcher(args.runs)}
+    if not args.skip_attitude:
+        result["attitude_scenario_I"] = attitude(args.attitude_runs, args.attitude_duration)
+    if not args.skip_marg:
+        result["marg_broad"] = marg()
+    text = json.dumps(result, indent=1)
+    if args.out:
+        args.out.write_text(text)
+    if args.json:
+        print(text)
+    else:
+        _print(result)
+    return 0
+
+
+#: (section, metric, unit) of the printed table.
+_METRICS = {"launcher_20Hz_small": ("r_rms_m", "m"), "attitude_scenario_I": ("attitude_rms_deg", "deg"),
+            "marg_broad": ("mean_total_rmse_deg", "deg")}
+
+
+def _print(result: dict) -> None:
+    print(f"{'case':22s} {'filter':10s} {'metric':20s} {'double':>10s} {'float':>10s} {'ratio':>7s} "
+          f"{'refused d/f':>12s}")
+    for section, (metric, unit) in _METRICS.items():
+        for family, rows in result.get(section, {}).items():
+            if family == "skipped":
+                print(f"{section:22s} skipped: {rows}")
+                continue
+            d, f = rows["double"], rows["float"]
+            print(f"{section:22s} {family:10s} {metric + ' (' + unit + ')':20s} {d[metric]:10.4g} {f[metric]:10.4g} "
+                  f"{f[metric] / d[metric]:7.2f} {d['refused_steps']:>5d}/{f['refused_steps']:<6d}")
