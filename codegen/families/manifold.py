@@ -50,7 +50,7 @@ import casadi as ca
 from symkf.models import quaternion as quat
 from symkf.models.base import Model
 from .. import linalg
-from ..discretize import FUNCTION_OPTIONS
+from ..discretize import FUNCTION_OPTIONS, measurement_function
 from ..kernels import (ModelFunctions, Symbols, all_finite, compose_step, filter_spec, innovation, make_kernel,
                        masked_finite, masked_noise, register_family, update_status, gated)
 from ..spec import STATUS_DOMAIN, STATUS_NONFINITE, STATUS_NOT_PD, Arg, Family
@@ -156,7 +156,7 @@ class ManifoldFunctions:
         self.h, self.jac_h = {}, {}
         for name, meas in model.measurements.items():
             q = ca.SX.sym("q", meas.q.shape[0])
-            z = fns.h[name](t, chart.retract_linear(x, delta), u, p, q)
+            z = measurement_function(model, name)(t, chart.retract_linear(x, delta), u, p, q)   # h inlined
             H = ca.substitute(ca.jacobian(z, delta), delta, zero)
             self.jac_h[name] = ca.Function(f"{prefix}_manifold_jac_h_{name}", [t, x, u, p, q], [H],
                                            ["t", "x", "u", "p", "q"], ["H"], _CALLED)
