@@ -54,6 +54,10 @@ class AttitudeFilter(Filter):
         options = {} if kind == "mekf" else {"kappa": kappa}
         super().__init__(compiled, kind, x, P, Q, R=R, **options)
         self.kind = kind
+        # step(omega_g, dt, q_s) in C: the gyro output (u) is required, the mask always ones
+        self._fast_sample = self._fast_step(self.MEASUREMENT, ("z", "mask", "u"))
+
+    FAST_NONE = {"mask": "ones", "u": "decline"}
 
     y = property(lambda self: read_only(self.measurements["star_tracker"]["y"]),
                  doc="Innovation δp_s of the last update (eq 50).")
@@ -81,6 +85,12 @@ class AttitudeFilter(Filter):
         if q_s is None:
             self.predict(omega_g, dt)
             return 0
+        fast = self._fast_sample
+        if fast is not None and nan == "raise":
+            code = fast(self.t, dt, q_s, None, omega_g)   # None: not a plain call, the Python path decides
+            if code == 0:
+                self.t = float(self.t + dt)
+                return code
         omega_g = contract.finite_array("omega_g", omega_g, (3,))
         return self._step(self.MEASUREMENT, self.t, dt, {"z": q_s, "mask": None}, omega_g, nan)
 

@@ -117,7 +117,8 @@ class CompiledBackend:
         function = getattr(self.lib, f"{self.model}_{kernel}_v")
         function.argtypes = None           # a prebuilt byref needs no per-call conversion (measured
         function.restype = ctypes.c_int    # 0.39 vs 0.62 us per call with argtypes + an int address)
-        return BoundCall(kernel, function, ctypes.byref(pointers), keep_alive=(pointers, buffers))
+        return BoundCall(kernel, function, ctypes.byref(pointers), keep_alive=(pointers, buffers),
+                         c_address=ctypes.cast(function, ctypes.c_void_p).value, c_args=ctypes.addressof(pointers))
 
     def run_function(self, kernel: str):
         """``<model>_<kernel>_run`` as ``run(n_steps, *input_addresses, *hist_addresses, status_address)``.
@@ -151,12 +152,15 @@ class BoundCall(functools.partial):
     """A kernel bound to its buffers: calling it runs the kernel and returns the status code.
 
     For the compiled backend this is ``partial(c_function, pointer_array_address)``: one ctypes
-    call with one integer argument.
+    call with one integer argument; ``c_address`` and ``c_args`` are the addresses of the C
+    function ``int f(double *const *args)`` and of its argument array (for
+    :mod:`symkf.runtime.fastcall`; None on the VM backend).
     """
 
-    def __new__(cls, kernel: str, function, *address, keep_alive=None):
+    def __new__(cls, kernel: str, function, *address, keep_alive=None, c_address=None, c_args=None):
         self = super().__new__(cls, function, *address)
         self.kernel, self.keep_alive = kernel, keep_alive
+        self.c_address, self.c_args = c_address, c_args
         return self
 
 

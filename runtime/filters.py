@@ -21,6 +21,7 @@ from scipy.stats import chi2
 
 from symkf.codegen.spec import STATUS_GATED, STATUS_NONFINITE, FilterSpec
 from . import contract
+from . import fastcall
 from .backends import SymkfError
 from .contract import as_array, covariance, read_only  # noqa: F401  (re-exported for older imports)
 
@@ -101,7 +102,17 @@ class Filter:
         p: runtime parameters (default: the model's defaults).
         gate: {measurement: probability in (0, 1) or {"threshold": value}} chi-square gates.
         **scalars: scalar inputs of the kernels, e.g. ``kappa`` (defaults from the spec).
+
+    ``step(t, dt, z, q=...)`` with float64 arrays of the right shape takes a fast path: the
+    contract's checks, the copies and the kernel call in one C call (:mod:`symkf.runtime.fastcall`);
+    any other call, and every error, takes the Python path below, with the same rules.
     """
+
+    #: The array arguments of :meth:`step` in the order its fast path takes them.
+    FAST_ARGUMENTS = ("z", "q", "mask", "u")
+    #: What the fast path writes for an omitted (None) array: a mask is all ones, an input ``u``
+    #: keeps its held value; any other argument with values is required (the Python path says so).
+    FAST_NONE = {"mask": "ones", "u": "keep"}
 
     def __init__(self, compiled, spec, x0, P0=None, Q=None, R: dict | None = None, p=None,
                  gate: dict | None = None, **scalars):
@@ -114,6 +125,7 @@ class Filter:
         self._scaling = StateScaling.of(self.model)
         self._make_buffers()
         self.n = self._buffers["x"].size
+        self._views = {name: read_only(self._buffers[name]) for name in ("x", "P") if name in self._buffers}
         self._set_initial(x0, P0, Q, p, scalars)
         self._set_noise(R)
         for name, value in contract.known_keys("gate", gate, self.spec.measurements).items():
@@ -138,7 +150,6 @@ class Filter:
         for buffers in self.measurements.values():
             if "mask" in buffers:
                 buffers["mask"][:] = 1.0
-        self._mask_dirty = {m: False for m in self.spec.measurements}
 
     def _kernel_roles(self) -> list[tuple[str, str | None]]:
         # a prediction that reads a measurement input (the augmented UKF's R) reads the first one's
@@ -173,6 +184,22 @@ class Filter:
         for kernel, measurement in self._kernel_roles():
             buffers = self._buffers if measurement is None else {**self._buffers, **self.measurements[measurement]}
             self._calls[kernel] = self._backend.bind(kernel, buffers)
+        self._fast = {name: self._fast_step(name, self.FAST_ARGUMENTS) for name in self.spec.step}
+        self._fast_default = self._fast.get(self._default)
+
+    def _fast_step(self, name: str, keys: tuple[str, ...]):
+        """The fast path of ``step`` with measurement ``name`` (None without the C extension)."""
+        buffers = self.measurements[name]
+        slots = []
+        for key in keys:
+            buffer = buffers.get(key, self._buffers.get(key) if key == "u" else None)
+            if buffer is None:
+                slots.append((None, "absent", "finite"))
+            else:
+                required = "decline" if buffer.size else "keep"
+                slots.append((buffer, self.FAST_NONE.get(key, required), "mask" if key == "mask" else "finite"))
+        return fastcall.step(self._calls[self.spec.step[name]], self._buffers.get("t"), self._buffers.get("dt"),
+                             slots, (self._buffers, buffers))
 
     def kernel_buffer(self, name: str, measurement: str | None = None) -> np.ndarray:
         """The writable buffer a bound kernel reads (no checks: for benchmarks that restore the
@@ -191,8 +218,9 @@ class Filter:
     def x(self) -> np.ndarray:
         """The state estimate (a read-only view of the buffer the C code writes; a read-only
         physical copy for a scaled build)."""
-        x = self._buffers["x"]
-        return read_only(x if self._scaling is None else self._scaling.x_from_kernel(x))
+        if self._scaling is None:
+            return self._views["x"]
+        return read_only(self._scaling.x_from_kernel(self._buffers["x"]))
 
     @x.setter
     def x(self, value) -> None:
@@ -204,8 +232,9 @@ class Filter:
     def P(self) -> np.ndarray:
         """The covariance (read-only view, or physical copy for a scaled build); set it with a
         symmetric PSD matrix."""
-        P = self._buffers["P"]
-        return read_only(P if self._scaling is None else self._scaling.P_from_kernel(P))
+        if self._scaling is None:
+            return self._views["P"]
+        return read_only(self._scaling.P_from_kernel(self._buffers["P"]))
 
     @P.setter
     def P(self, value) -> None:
@@ -322,6 +351,12 @@ class Filter:
              u=None, nan: str = "raise") -> int:
         """predict(t, dt) then update(z) at t + dt — one call into the compiled code. Returns 0
         or SYMKF_GATED (prediction applied, update refused by the gate)."""
+        fast = self._fast_default if measurement is None else self._fast.get(measurement) if type(measurement) is str else None
+        if fast is not None and nan == "raise":
+            code = fast(t, dt, z, q, mask, u)          # None: not a plain call, the Python path decides
+            if code == 0 or code == STATUS_GATED:
+                self.t = float(t + dt)
+                return code
         name = self._measurement_name(measurement, "step")
         return self._step(name, t, dt, {"z": z, "q": q, "mask": mask}, u, nan)
 
@@ -385,12 +420,7 @@ class Filter:
         buffers = self.measurements[name]
         for key, value in values.items():
             if key == "mask":
-                if value is not None:
-                    buffers["mask"][...] = value
-                    self._mask_dirty[name] = not bool(value.all())
-                elif self._mask_dirty[name]:
-                    buffers["mask"][...] = 1.0
-                    self._mask_dirty[name] = False
+                buffers["mask"][...] = 1.0 if value is None else value
             else:
                 buffers[key][...] = value
 

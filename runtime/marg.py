@@ -51,6 +51,11 @@ class MargFilter(Filter):
         self.kernel = f"gd_{form}_{mode}"
         super().__init__(compiled, self.kernel, q0, p=[_beta(beta), _alpha(alpha)])
         self._initial = self._backend.bind(f"gd_initial_{mode}", {**self._buffers, **self.measurements[mode]})
+        # step(dt, gyro, acc, mag) in C: gyro required, a missing 9-axis magnetometer sample is zeros
+        self._fast_sample = self._fast_step(mode, ("acc", "mag", "u"))
+
+    #: Fast path of :meth:`step`: gyro (``u``) is required; an omitted 9-axis ``mag`` is a zero sample.
+    FAST_NONE = {"mag": "zeros", "u": "decline"}
 
     # -------------------------------------------------------------- parameters and state
     @property
@@ -98,6 +103,12 @@ class MargFilter(Filter):
 
     def step(self, dt: float, gyro, acc, mag=None, nan: str = "raise") -> np.ndarray:
         """One sample: gyro (rad/s), acc, mag (any units; zero vector = skip that correction)."""
+        fast = self._fast_sample
+        if fast is not None and nan == "raise":
+            code = fast(self.t, dt, acc, mag, gyro)    # None: not a plain call, the Python path decides
+            if code == 0:
+                self.t = float(self.t + dt)
+                return self._views["x"]
         gyro = contract.finite_array("gyro", gyro, (3,))
         self._step(self.mode, None, dt, self._samples(acc, mag), gyro, nan)
         return self.q

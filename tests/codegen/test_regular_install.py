@@ -22,10 +22,13 @@ import symkf.codegen
 from symkf.runtime import load
 compiled = load("tracker.py")
 ekf = compiled.ekf([0.0, 1.0], np.eye(2), np.diag([0.0, 0.01]))
-for k in range(3):
-    ekf.step(0.5 * k, 0.5, [0.4 * (k + 1)])
+from symkf.runtime import fastcall
+for k in range(3):                       # a list takes the Python path, an array the C fast path
+    ekf.step(0.5 * k, 0.5, [0.4 * (k + 1)] if k % 2 else np.array([0.4 * (k + 1)]))
+ext = fastcall.extension()
 print(json.dumps({"codegen": symkf.codegen.__file__, "library": str(compiled.backend.library_path),
-                  "backend": compiled.backend.kind, "x": list(ekf.x)}))
+                  "backend": compiled.backend.kind, "x": list(ekf.x),
+                  "fastcall": ext and ext.__file__, "fastcall_unavailable": fastcall.unavailable}))
 """
 
 
@@ -66,3 +69,6 @@ def test_user_model_with_a_regular_install(tmp_path, write_model):
     assert out["backend"] == "compiled"
     assert Path(out["library"]).parent == cache / "symkf" / "tiny"
     assert numpy.all(numpy.isfinite(out["x"])) and abs(out["x"][0] - 1.2) < 0.3
+    # the step fast path (C extension) is compiled at first use into the same per-user cache
+    assert out["fastcall"] and Path(out["fastcall"]).is_relative_to(cache / "symkf" / "_fastcall"), out
+

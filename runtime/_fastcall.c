@@ -1,0 +1,232 @@
+/* _symkf_fastcall: one filter step from Python with the input contract checked in C.
+ *
+ * A Step is made once per filter and measurement (symkf/runtime/fastcall.py) from the addresses
+ * of the buffers the compiled kernel is bound to: the kernel's `<model>_<kernel>_v` entry, its
+ * argument-pointer array, the t and dt buffers and one slot per array argument of the Python call
+ * (z, q, mask, u, ...). Calling it with (t, dt, array_0, ..., array_n-1):
+ *
+ *   1. checks every argument without writing anything: t, dt Python floats (numpy.float64 is
+ *      one), finite, dt > 0; each array a native float64 1-D contiguous buffer of the slot's size
+ *      with finite entries (a mask: exactly 0 or 1), or None where the slot allows it;
+ *   2. copies the values into the bound buffers (a None mask writes ones, a None magnetometer
+ *      sample zeros, a None input keeps the held value);
+ *   3. calls the kernel and returns its status code (an int).
+ *
+ * Whatever it does not accept it returns None for, having written nothing: the caller then runs
+ * the Python contract (symkf/runtime/contract.py), which accepts or refuses it with a clear error.
+ * So this file adds speed, never a rule: every call it accepts, the Python path accepts too and
+ * writes the very same values. Only the Python C API is used (no numpy headers).
+ */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+#include <math.h>
+#include <stddef.h>
+#include <string.h>
+
+#define MAX_SLOTS 8
+
+/* What a slot does with None: */
+enum { NONE_KEEP = 0,     /* keep the buffer (an input held from the last call; or size 0) */
+       NONE_ONES = 1,     /* write ones (a mask: every component used) */
+       NONE_ZEROS = 2,    /* write zeros (a MARG sample: skip that correction) */
+       NONE_DECLINE = 3,  /* let Python answer (a required argument) */
+       ABSENT = 4 };      /* the kernel has no such argument: only None is accepted here */
+/* How a slot's values are checked: */
+enum { CHECK_FINITE = 0, CHECK_MASK = 1 };
+
+typedef int (*kernel_v)(double *const *args);
+
+typedef struct {
+  double *dst;
+  Py_ssize_t size;
+  int if_none;
+  int check;
+} Slot;
+
+typedef struct {
+  PyObject_HEAD
+  vectorcallfunc vectorcall;
+  kernel_v kernel;
+  double *const *args;
+  double *t, *dt;
+  int n_slots;
+  Slot slots[MAX_SLOTS];
+  PyObject *keep_alive;
+} Step;
+
+/* A Python float (or subclass, e.g. numpy.float64) that is finite. */
+static int finite_float(PyObject *o, double *value) {
+  if (!PyFloat_Check(o)) return 0;
+  *value = PyFloat_AS_DOUBLE(o);
+  return isfinite(*value);
+}
+
+static int native_double(const char *format) {
+  const unsigned one = 1;
+  const int little = *(const unsigned char *) &one == 1;
+  if (format == NULL) return 0;
+  if (format[0] == '@' || format[0] == '=' || format[0] == (little ? '<' : '>')) ++format;
+  return format[0] == 'd' && format[1] == '\0';
+}
+
+static int values_ok(const double *v, Py_ssize_t n, int check) {
+  Py_ssize_t i;
+  if (check == CHECK_MASK) {
+    for (i = 0; i < n; ++i) if (v[i] != 0.0 && v[i] != 1.0) return 0;
+  } else {
+    for (i = 0; i < n; ++i) if (!isfinite(v[i])) return 0;
+  }
+  return 1;
+}
+
+/* Phase 1 for one slot: 1 and a held view if `o` fits, 1 without a view for an accepted None,
+   0 if Python must answer. Never writes a buffer. */
+static int accept(const Slot *slot, PyObject *o, Py_buffer *view, int *held) {
+  *held = 0;
+  if (o == Py_None) return slot->if_none != NONE_DECLINE;
+  if (slot->if_none == ABSENT) return 0;
+  if (PyObject_GetBuffer(o, view, PyBUF_ND | PyBUF_FORMAT) != 0) {
+    PyErr_Clear();
+    return 0;
+  }
+  *held = 1;
+  return view->ndim == 1 && view->shape[0] == slot->size && view->itemsize == 8 &&
+         native_double(view->format) && values_ok((const double *) view->buf, slot->size, slot->check);
+}
+
+static void write_slot(const Slot *slot, PyObject *o, const Py_buffer *view) {
+  Py_ssize_t i;
+  if (o != Py_None) {
+    memmove(slot->dst, view->buf, (size_t) slot->size * sizeof(double));
+  } else if (slot->if_none == NONE_ONES || slot->if_none == NONE_ZEROS) {
+    for (i = 0; i < slot->size; ++i) slot->dst[i] = slot->if_none == NONE_ONES ? 1.0 : 0.0;
+  }
+}
+
+static PyObject *step_call(PyObject *callable, PyObject *const *argv, size_t nargsf, PyObject *kwnames) {
+  Step *self = (Step *) callable;
+  Py_ssize_t nargs = PyVectorcall_NARGS(nargsf);
+  Py_buffer views[MAX_SLOTS];
+  int held[MAX_SLOTS];
+  int i, fits = 1, code;
+  double t, dt;
+  if (kwnames != NULL || nargs != 2 + self->n_slots) {
+    PyErr_Format(PyExc_TypeError, "Step expects %d positional arguments (t, dt, %d arrays)",
+                 2 + self->n_slots, self->n_slots);
+    return NULL;
+  }
+  if (!finite_float(argv[0], &t) || !finite_float(argv[1], &dt) || !(dt > 0.0)) Py_RETURN_NONE;
+  for (i = 0; i < self->n_slots; ++i) held[i] = 0;
+  for (i = 0; i < self->n_slots && fits; ++i) fits = accept(&self->slots[i], argv[2 + i], &views[i], &held[i]);
+  if (fits) {
+    if (self->t != NULL) *self->t = t;
+    if (self->dt != NULL) *self->dt = dt;
+    for (i = 0; i < self->n_slots; ++i) write_slot(&self->slots[i], argv[2 + i], &views[i]);
+  }
+  for (i = 0; i < self->n_slots; ++i) if (held[i]) PyBuffer_Release(&views[i]);
+  if (!fits) Py_RETURN_NONE;
+  code = self->kernel(self->args);
+  return PyLong_FromLong(code);
+}
+
+static void *address(PyObject *o) {
+  return o == Py_None ? NULL : PyLong_AsVoidPtr(o);
+}
+
+/* Step(kernel, args, t, dt, slots, keep_alive): addresses as ints (t, dt may be None); slots a
+   tuple of (address, size, if_none, check); keep_alive holds the buffers those addresses point into. */
+static PyObject *step_new(PyTypeObject *type, PyObject *a, PyObject *kw) {
+  PyObject *kernel, *args, *t, *dt, *slots, *keep_alive;
+  Step *self;
+  Py_ssize_t i;
+  if (kw != NULL && PyDict_GET_SIZE(kw)) {
+    PyErr_SetString(PyExc_TypeError, "Step takes positional arguments only");
+    return NULL;
+  }
+  if (!PyArg_ParseTuple(a, "OOOOO!O", &kernel, &args, &t, &dt, &PyTuple_Type, &slots, &keep_alive)) return NULL;
+  if (PyTuple_GET_SIZE(slots) > MAX_SLOTS) {
+    PyErr_Format(PyExc_ValueError, "Step: at most %d array arguments", MAX_SLOTS);
+    return NULL;
+  }
+  self = (Step *) type->tp_alloc(type, 0);
+  if (self == NULL) return NULL;
+  self->vectorcall = step_call;
+  self->kernel = (kernel_v) address(kernel);
+  self->args = (double *const *) address(args);
+  self->t = (double *) address(t);
+  self->dt = (double *) address(dt);
+  self->n_slots = (int) PyTuple_GET_SIZE(slots);
+  for (i = 0; i < PyTuple_GET_SIZE(slots); ++i) {
+    Slot *s = &self->slots[i];
+    PyObject *dst;
+    if (!PyArg_ParseTuple(PyTuple_GET_ITEM(slots, i), "Onii", &dst, &s->size, &s->if_none, &s->check)) break;
+    s->dst = (double *) address(dst);
+    if (s->size < 0 || s->if_none < NONE_KEEP || s->if_none > ABSENT || (s->size > 0 && s->dst == NULL)) {
+      PyErr_SetString(PyExc_ValueError, "Step: bad slot (address, size >= 0, if_none 0..4, check)");
+      break;
+    }
+  }
+  if (PyErr_Occurred() || self->kernel == NULL || self->args == NULL) {
+    if (!PyErr_Occurred()) PyErr_SetString(PyExc_ValueError, "Step: kernel and args addresses are required");
+    Py_DECREF(self);
+    return NULL;
+  }
+  Py_INCREF(keep_alive);
+  self->keep_alive = keep_alive;
+  return (PyObject *) self;
+}
+
+static int step_traverse(Step *self, visitproc visit, void *arg) {
+  Py_VISIT(self->keep_alive);
+  return 0;
+}
+
+static int step_clear(Step *self) {
+  Py_CLEAR(self->keep_alive);
+  return 0;
+}
+
+static void step_dealloc(Step *self) {
+  PyObject_GC_UnTrack(self);
+  step_clear(self);
+  Py_TYPE(self)->tp_free((PyObject *) self);
+}
+
+static PyTypeObject StepType = {
+  PyVarObject_HEAD_INIT(NULL, 0)
+  .tp_name = "_symkf_fastcall.Step",
+  .tp_doc = "One bound filter step: Step(kernel, args, t, dt, slots, keep_alive)(t, dt, *arrays) -> int | None",
+  .tp_basicsize = sizeof(Step),
+  .tp_flags = Py_TPFLAGS_DEFAULT | Py_TPFLAGS_HAVE_GC | Py_TPFLAGS_HAVE_VECTORCALL,
+  .tp_new = step_new,
+  .tp_dealloc = (destructor) step_dealloc,
+  .tp_traverse = (traverseproc) step_traverse,
+  .tp_clear = (inquiry) step_clear,
+  .tp_vectorcall_offset = offsetof(Step, vectorcall),
+  .tp_call = PyVectorcall_Call,
+};
+
+static struct PyModuleDef module = {
+  PyModuleDef_HEAD_INIT, "_symkf_fastcall", "symkf's checked fast path for one filter step.", -1, NULL,
+};
+
+PyMODINIT_FUNC PyInit__symkf_fastcall(void) {
+  PyObject *m;
+  if (PyType_Ready(&StepType) < 0) return NULL;
+  m = PyModule_Create(&module);
+  if (m == NULL) return NULL;
+  Py_INCREF(&StepType);
+  if (PyModule_AddObject(m, "Step", (PyObject *) &StepType) < 0) {
+    Py_DECREF(&StepType);
+    Py_DECREF(m);
+    return NULL;
+  }
+  PyModule_AddIntConstant(m, "NONE_KEEP", NONE_KEEP);
+  PyModule_AddIntConstant(m, "NONE_ONES", NONE_ONES);
+  PyModule_AddIntConstant(m, "NONE_ZEROS", NONE_ZEROS);
+  PyModule_AddIntConstant(m, "NONE_DECLINE", NONE_DECLINE);
+  PyModule_AddIntConstant(m, "ABSENT", ABSENT);
+  PyModule_AddIntConstant(m, "CHECK_FINITE", CHECK_FINITE);
+  PyModule_AddIntConstant(m, "CHECK_MASK", CHECK_MASK);
+  return m;
+}

@@ -1,0 +1,125 @@
+"""The checked fast path of one filter step: a small C extension, built at first use.
+
+``Filter.step(t, dt, z, q=...)`` with float64 arrays of the right shape is the call a tracker
+makes thousands of times a second. Through the Python contract it costs tens of microseconds
+(type and shape checks, dict handling, copies, a ctypes call); :file:`_fastcall.c` does the same
+checks, copies and kernel call in C (issue 12). The rules stay in :mod:`symkf.runtime.contract`:
+the extension accepts only calls the contract accepts, writes the same values, and returns None
+(having written nothing) for anything else, which the Python path then accepts or refuses.
+
+The extension is compiled once per machine and Python, like a model library: with the C compiler
+of :func:`symkf.codegen.build.compiler` and Python's headers, into ``<build root>/_fastcall/<key>/``
+(key: SHA-256 of the C source, compiler, Python ABI and flags), its SHA-256 checked before it is
+imported. Without a compiler, without Python's headers, on the CasADi-VM backend or with
+``SYMKF_FASTCALL=0``, every call takes the Python path (same results, slower).
+"""
+from __future__ import annotations
+
+import functools
+import hashlib
+import importlib.machinery
+import importlib.util
+import os
+import sys
+import sysconfig
+import tempfile
+from pathlib import Path
+
+from symkf.codegen.build import (BuildError, _lock, compiler, compiler_identity, private_root, run_compiler,
+                                 sha256_file)
+
+SOURCE = Path(__file__).resolve().parent / "_fastcall.c"
+MODULE = "_symkf_fastcall"
+FLAGS = ("-std=c99", "-O2", "-fPIC", "-shared", "-Wall", "-Wextra", "-Wno-unused-parameter",
+         "-Wno-missing-field-initializers", "-Wno-cast-function-type")
+
+#: Why the extension is not in use (None when it is); set by :func:`extension`.
+unavailable: str | None = None
+
+
+@functools.lru_cache(maxsize=1)
+def extension():
+    """The compiled ``_symkf_fastcall`` module, built if needed; None if it cannot be (see
+    :data:`unavailable`)."""
+    global unavailable
+    if os.environ.get("SYMKF_FASTCALL", "1") == "0":
+        unavailable = "disabled by SYMKF_FASTCALL=0"
+        return None
+    try:
+        module = _import(_build())
+    except (BuildError, OSError, ImportError) as exc:
+        unavailable = f"{type(exc).__name__}: {exc}"
+        return None
+    unavailable = None
+    return module
+
+
+def _key(cc: str, include: str) -> str:
+    text = "\n".join([SOURCE.read_text(), compiler_identity(cc), " ".join(FLAGS), include,
+                      sysconfig.get_config_var("EXT_SUFFIX") or "", sys.version])
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def _build() -> Path:
+    """``<build root>/_fastcall/<key16>/_symkf_fastcall<EXT_SUFFIX>``, compiled unless present."""
+    cc = compiler()
+    include = sysconfig.get_paths()["include"]
+    if not (Path(include) / "Python.h").is_file():
+        raise BuildError(f"Python's headers are not installed (no {include}/Python.h)")
+    key = _key(cc, include)
+    root = private_root() / "_fastcall"
+    root.mkdir(exist_ok=True, mode=0o755)
+    folder = root / key[:16]
+    library = folder / f"{MODULE}{sysconfig.get_config_var('EXT_SUFFIX') or '.so'}"
+    with _lock(root, key[:16]):
+        if not _verified(folder, library):
+            _compile(cc, include, folder, library)
+    return library
+
+
+def _verified(folder: Path, library: Path) -> bool:
+    record = folder / "sha256"
+    return library.is_file() and record.is_file() and record.read_text().strip() == sha256_file(library)
+
+
+def _compile(cc: str, include: str, folder: Path, library: Path) -> None:
+    folder.mkdir(exist_ok=True, mode=0o755)
+    partial = Path(tempfile.mkdtemp(prefix=".tmp-", dir=folder)) / library.name
+    cmd = cc.split() + list(FLAGS) + [f"-I{include}", "-o", str(partial), str(SOURCE), "-lm"]
+    code, stderr = run_compiler(cmd, folder)
+    if code != 0:
+        raise BuildError(f"compiling {SOURCE.name} failed ({' '.join(cmd)}):\n{stderr[-2000:]}")
+    os.replace(partial, library)
+    partial.parent.rmdir()
+    (folder / "sha256").write_text(sha256_file(library))
+
+
+def _import(library: Path):
+    loader = importlib.machinery.ExtensionFileLoader(MODULE, str(library))
+    spec = importlib.util.spec_from_file_location(MODULE, library, loader=loader)
+    module = importlib.util.module_from_spec(spec)
+    loader.exec_module(module)
+    return module
+
+
+def step(bound, t, dt, slots: list[tuple], keep_alive):
+    """A ``Step`` over a bound compiled kernel, or None without the extension or a C kernel.
+
+    Args:
+        bound: a :class:`~symkf.runtime.backends.BoundCall` of the compiled backend.
+        t, dt: the kernel's time and step-length buffers (None if it has none).
+        slots: per array argument of the Python call, ``(buffer or None, if_none, check)`` with
+            ``if_none`` one of "keep", "ones", "zeros", "decline", "absent" and ``check``
+            "finite" or "mask".
+        keep_alive: what owns the buffers (held by the Step).
+    """
+    ext = extension()
+    if ext is None or getattr(bound, "c_address", None) is None:
+        return None
+    if_none = {"keep": ext.NONE_KEEP, "ones": ext.NONE_ONES, "zeros": ext.NONE_ZEROS,
+               "decline": ext.NONE_DECLINE, "absent": ext.ABSENT}
+    check = {"finite": ext.CHECK_FINITE, "mask": ext.CHECK_MASK}
+    table = tuple((None if b is None else b.ctypes.data, 0 if b is None else b.size, if_none[n], check[c])
+                  for b, n, c in slots)
+    address = [None if b is None else b.ctypes.data for b in (t, dt)]
+    return ext.Step(bound.c_address, bound.c_args, *address, table, (keep_alive, bound))

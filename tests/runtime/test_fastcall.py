@@ -1,0 +1,164 @@
+"""The step fast path (runtime/_fastcall.c): same numbers as the Python path, and it declines,
+writing nothing, every call it is not sure of (issue 12; the contract itself is tests/test_contract.py)."""
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from symkf.runtime import SymkfError, fastcall, load
+from symkf.runtime.attitude import attitude_filter
+from symkf.runtime.marg import MargFilter
+from symkf.scenarios.launcher.truth import propagate, radar_track
+
+P0 = np.diag([10.0, 1e-4, 1e-4, 1000.0, 1e-5, 1e-5]) ** 2
+Q = np.diag([1.0, 1e-8, 1e-8, 1.0, 1e-14, 1e-14])
+TIMES = np.arange(13) * 0.05
+TRUTH = propagate(TIMES)
+X0 = TRUTH[0] + np.array([10.0, 1e-8, 1e-8, 1000.0, 1e-8, 1e-8])
+_TRACK = radar_track(TIMES, TRUTH)
+Z, STATIONS = _TRACK.noisy(np.random.default_rng(7)), _TRACK.station_params()
+STATION = STATIONS[1]
+
+pytestmark = pytest.mark.skipif(fastcall.extension() is None, reason=f"no fast path: {fastcall.unavailable}")
+
+
+@pytest.fixture(scope="module")
+def marg():
+    return load("marg", backend="compiled")
+
+
+def _radar(k: int) -> np.ndarray:
+    return Z[k].copy()
+
+
+def _python_path(f):
+    """The same filter with the fast path switched off (every call through runtime/contract.py)."""
+    f._fast_default, f._fast = None, {}
+    if hasattr(f, "_fast_sample"):
+        f._fast_sample = None
+    return f
+
+
+def _state(f) -> tuple:
+    return f.x.copy(), (f.P.copy() if "P" in f._buffers else None), f.t
+
+
+@pytest.mark.parametrize("family", ["ekf", "ukf"])
+def test_launcher_fast_path_equals_python_path_bit_for_bit(launcher_compiled, family):
+    fast = launcher_compiled.filter(family, X0, P0, Q)
+    slow = _python_path(launcher_compiled.filter(family, X0, P0, Q))
+    assert fast._fast_default is not None
+    masks = [None, np.array([1.0, 0.0, 1.0]), None, np.array([0.0, 0.0, 0.0]), None]
+    for k in range(1, len(TIMES)):
+        mask = masks[k % len(masks)]
+        codes = [f.step(TIMES[k - 1], 0.05, Z[k], q=STATIONS[k], mask=mask) for f in (fast, slow)]
+        assert codes[0] == codes[1] == 0
+        for a, b in zip(_state(fast), _state(slow)):
+            assert np.array_equal(a, b)
+        assert np.array_equal(fast.y(), slow.y()) and np.array_equal(fast.S(), slow.S())
+        assert np.array_equal(fast.kernel_buffer("mask", "radar"), slow.kernel_buffer("mask", "radar"))
+    assert type(fast.t) is float and fast.t == slow.t
+
+
+@pytest.mark.parametrize("form", ["simple", "full"])
+def test_marg_fast_path_equals_python_path(marg, form):
+    rng = np.random.default_rng(3)
+    fast, slow = MargFilter(marg, form), _python_path(MargFilter(marg, form))
+    assert fast._fast_sample is not None
+    for k in range(50):
+        gyro, acc, mag = rng.normal(0, 0.2, 3), rng.normal([0, 0, 9.8], 0.5), rng.normal([20, 0, -40], 2)
+        mag = None if k % 7 == 0 else mag                 # a missing magnetometer sample is zeros
+        q_fast, q_slow = fast.step(0.01, gyro, acc, mag), slow.step(0.01, gyro, acc, mag)
+        assert np.array_equal(q_fast, q_slow) and fast.t == slow.t
+    assert not q_fast.flags.writeable
+
+
+def test_attitude_fast_path_equals_python_path():
+    fast, slow = (attitude_filter("mekf", [0, 0, 0, 1.0], np.zeros(3), np.eye(6) * 1e-4, backend="compiled")
+                  for _ in range(2))
+    _python_path(slow)
+    q_s = np.array([0.01, 0.0, 0.0, np.sqrt(1 - 1e-4)])
+    for k in range(5):
+        codes = [f.step(np.array([1e-3, 0.0, 2e-3]), 0.1, q_s) for f in (fast, slow)]
+        assert codes == [0, 0]
+        for a, b in zip(_state(fast), _state(slow)):
+            assert np.array_equal(a, b)
+
+
+def _buffers(f) -> list[np.ndarray]:
+    return [b.copy() for b in f._buffers.values()] + [b.copy() for m in f.measurements.values() for b in m.values()]
+
+
+BIG_ENDIAN = np.array([1000.0, 0.3, 0.2], dtype=">f8")
+#: (t, dt, z, q, mask, u) calls the C fast path must hand to the Python contract.
+DECLINED = {
+    "t string": ("0", 0.05, _radar(1), STATION, None, None),
+    "t None": (None, 0.05, _radar(1), STATION, None, None),
+    "t NaN": (np.nan, 0.05, _radar(1), STATION, None, None),
+    "t int": (0, 0.05, _radar(1), STATION, None, None),
+    "t float32": (np.float32(0.0), 0.05, _radar(1), STATION, None, None),
+    "t 0-d array": (np.array(0.0), 0.05, _radar(1), STATION, None, None),
+    "dt zero": (0.0, 0.0, _radar(1), STATION, None, None),
+    "dt negative": (0.0, -0.05, _radar(1), STATION, None, None),
+    "dt inf": (0.0, np.inf, _radar(1), STATION, None, None),
+    "dt bool": (0.0, True, _radar(1), STATION, None, None),
+    "z list": (0.0, 0.05, [1000.0, 0.3, 0.2], STATION, None, None),
+    "z short": (0.0, 0.05, _radar(1)[:2], STATION, None, None),
+    "z column": (0.0, 0.05, _radar(1).reshape(3, 1), STATION, None, None),
+    "z float32": (0.0, 0.05, _radar(1).astype(np.float32), STATION, None, None),
+    "z int": (0.0, 0.05, np.array([1000, 0, 0]), STATION, None, None),
+    "z complex": (0.0, 0.05, _radar(1) + 0j, STATION, None, None),
+    "z NaN": (0.0, 0.05, np.array([np.nan, 0.3, 0.2]), STATION, None, None),
+    "z Inf": (0.0, 0.05, np.array([1000.0, np.inf, 0.2]), STATION, None, None),
+    "z strided": (0.0, 0.05, np.arange(6.0)[::2], STATION, None, None),
+    "z big-endian": (0.0, 0.05, BIG_ENDIAN, STATION, None, None),
+    "z object": (0.0, 0.05, np.array([1.0, 2.0, 3.0], dtype=object), STATION, None, None),
+    "z None": (0.0, 0.05, None, STATION, None, None),
+    "z bytes": (0.0, 0.05, b"\0" * 24, STATION, None, None),
+    "q missing": (0.0, 0.05, _radar(1), None, None, None),
+    "q long": (0.0, 0.05, _radar(1), np.zeros(3), None, None),
+    "mask half": (0.0, 0.05, _radar(1), STATION, np.array([1.0, 0.5, 1.0]), None),
+    "mask two": (0.0, 0.05, _radar(1), STATION, np.array([1.0, 2.0, 1.0]), None),
+    "mask NaN": (0.0, 0.05, _radar(1), STATION, np.array([1.0, np.nan, 1.0]), None),
+    "mask bool": (0.0, 0.05, _radar(1), STATION, np.array([True, False, True]), None),
+    "u given": (0.0, 0.05, _radar(1), STATION, None, np.zeros(1)),
+}
+
+
+@pytest.mark.parametrize("case", sorted(DECLINED))
+def test_fast_path_declines_and_writes_nothing(launcher_compiled, case):
+    f = launcher_compiled.ekf(X0, P0, Q)
+    before = _buffers(f)
+    assert f._fast_default(*DECLINED[case]) is None
+    assert all(np.array_equal(a, b, equal_nan=True) for a, b in zip(before, _buffers(f)))
+
+
+def test_fast_path_checks_its_own_call(launcher_compiled):
+    fast = launcher_compiled.ekf(X0, P0, Q)._fast_default
+    with pytest.raises(TypeError, match="positional"):
+        fast(0.0, 0.05, _radar(1))
+    with pytest.raises(TypeError):
+        fast(0.0, 0.05, _radar(1), STATION, None, u=None)
+
+
+def test_a_kernel_failure_is_raised_by_the_python_path_with_state_unchanged(launcher_compiled):
+    f = launcher_compiled.ekf(X0, P0, Q)
+    f.kernel_buffer("P")[0, 0] = -1.0            # behind the contract's back: the C EKF refuses it
+    before = _state(f)
+    with pytest.raises(SymkfError, match="NOT_PD"):
+        f.step(0.0, 0.05, _radar(1), q=STATION)
+    assert all(np.array_equal(a, b) for a, b in zip(before, _state(f)))
+
+
+def test_without_the_extension_every_call_takes_the_python_path(tmp_path):
+    code = ("import numpy as np; from symkf.runtime import fastcall, load\n"
+            "from symkf.runtime.marg import MargFilter\n"
+            "m = MargFilter(load('marg', backend='compiled'))\n"
+            "q = m.step(0.01, np.zeros(3), np.array([0, 0, 9.8]), np.array([20.0, 0, -40]))\n"
+            "print(fastcall.extension() is None, m._fast_sample is None, fastcall.unavailable, list(q))")
+    env = {**os.environ, "SYMKF_FASTCALL": "0"}
+    proc = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert proc.stdout.startswith("True True disabled by SYMKF_FASTCALL=0")
