@@ -6,8 +6,9 @@
  * (z, q, mask, u, ...). Calling it with (t, dt, array_0, ..., array_n-1):
  *
  *   1. checks every argument without writing anything: t, dt Python floats (numpy.float64 is
- *      one), finite, dt > 0; each array a native float64 1-D contiguous buffer of the slot's size
- *      with finite entries (a mask: exactly 0 or 1), or None where the slot allows it;
+ *      one), finite, dt > 0; each array a native float64 1-D buffer (any stride, e.g. a row of
+ *      a column-major matrix) of the slot's size with finite entries (a mask: exactly 0 or 1),
+ *      or None where the slot allows it;
  *   2. copies the values into the bound buffers (a None mask writes ones, a None magnetometer
  *      sample zeros, a None input keeps the held value);
  *   3. calls the kernel and returns its status code (an int).
@@ -24,6 +25,7 @@
 #include <string.h>
 
 #define MAX_SLOTS 8
+#define MAX_SIZE 64   /* entries per array argument (per-call vectors are small) */
 
 /* What a slot does with None: */
 enum { NONE_KEEP = 0,     /* keep the buffer (an input held from the last call; or size 0) */
@@ -69,12 +71,18 @@ static int native_double(const char *format) {
   return format[0] == 'd' && format[1] == '\0';
 }
 
-static int values_ok(const double *v, Py_ssize_t n, int check) {
+/* Entry i of a 1-D buffer (strides in bytes, as the buffer protocol gives them). */
+static double entry(const Py_buffer *view, Py_ssize_t i) {
+  double v;
+  memcpy(&v, (const char *) view->buf + i * view->strides[0], sizeof v);
+  return v;
+}
+
+static int values_ok(const Py_buffer *view, Py_ssize_t n, int check) {
   Py_ssize_t i;
-  if (check == CHECK_MASK) {
-    for (i = 0; i < n; ++i) if (v[i] != 0.0 && v[i] != 1.0) return 0;
-  } else {
-    for (i = 0; i < n; ++i) if (!isfinite(v[i])) return 0;
+  for (i = 0; i < n; ++i) {
+    double v = entry(view, i);
+    if (check == CHECK_MASK ? v != 0.0 && v != 1.0 : !isfinite(v)) return 0;
   }
   return 1;
 }
@@ -85,19 +93,21 @@ static int accept(const Slot *slot, PyObject *o, Py_buffer *view, int *held) {
   *held = 0;
   if (o == Py_None) return slot->if_none != NONE_DECLINE;
   if (slot->if_none == ABSENT) return 0;
-  if (PyObject_GetBuffer(o, view, PyBUF_ND | PyBUF_FORMAT) != 0) {
+  if (PyObject_GetBuffer(o, view, PyBUF_STRIDES | PyBUF_FORMAT) != 0) {
     PyErr_Clear();
     return 0;
   }
   *held = 1;
   return view->ndim == 1 && view->shape[0] == slot->size && view->itemsize == 8 &&
-         native_double(view->format) && values_ok((const double *) view->buf, slot->size, slot->check);
+         native_double(view->format) && values_ok(view, slot->size, slot->check);
 }
 
 static void write_slot(const Slot *slot, PyObject *o, const Py_buffer *view) {
   Py_ssize_t i;
   if (o != Py_None) {
-    memmove(slot->dst, view->buf, (size_t) slot->size * sizeof(double));
+    double copy[MAX_SIZE];               /* the input may alias the buffer: read all, then write */
+    for (i = 0; i < slot->size; ++i) copy[i] = entry(view, i);
+    memcpy(slot->dst, copy, (size_t) slot->size * sizeof(double));
   } else if (slot->if_none == NONE_ONES || slot->if_none == NONE_ZEROS) {
     for (i = 0; i < slot->size; ++i) slot->dst[i] = slot->if_none == NONE_ONES ? 1.0 : 0.0;
   }
@@ -161,8 +171,8 @@ static PyObject *step_new(PyTypeObject *type, PyObject *a, PyObject *kw) {
     PyObject *dst;
     if (!PyArg_ParseTuple(PyTuple_GET_ITEM(slots, i), "Onii", &dst, &s->size, &s->if_none, &s->check)) break;
     s->dst = (double *) address(dst);
-    if (s->size < 0 || s->if_none < NONE_KEEP || s->if_none > ABSENT || (s->size > 0 && s->dst == NULL)) {
-      PyErr_SetString(PyExc_ValueError, "Step: bad slot (address, size >= 0, if_none 0..4, check)");
+    if (s->size < 0 || s->size > MAX_SIZE || s->if_none < NONE_KEEP || s->if_none > ABSENT || (s->size > 0 && s->dst == NULL)) {
+      PyErr_SetString(PyExc_ValueError, "Step: bad slot (address, 0 <= size <= 64, if_none 0..4, check)");
       break;
     }
   }
@@ -221,6 +231,7 @@ PyMODINIT_FUNC PyInit__symkf_fastcall(void) {
     Py_DECREF(m);
     return NULL;
   }
+  PyModule_AddIntConstant(m, "MAX_SIZE", MAX_SIZE);
   PyModule_AddIntConstant(m, "NONE_KEEP", NONE_KEEP);
   PyModule_AddIntConstant(m, "NONE_ONES", NONE_ONES);
   PyModule_AddIntConstant(m, "NONE_ZEROS", NONE_ZEROS);

@@ -54,10 +54,13 @@ class AttitudeFilter(Filter):
         options = {} if kind == "mekf" else {"kappa": kappa}
         super().__init__(compiled, kind, x, P, Q, R=R, **options)
         self.kind = kind
-        # step(omega_g, dt, q_s) in C: the gyro output (u) is required, the mask always ones
-        self._fast_sample = self._fast_step(self.MEASUREMENT, ("z", "mask", "u"))
 
+    #: Fast path of :meth:`step`: the gyro output (``u``) is required, the mask always ones.
     FAST_NONE = {"mask": "ones", "u": "decline"}
+
+    def _make_fast_paths(self) -> None:
+        super()._make_fast_paths()
+        self._fast_sample = self._fast_step(self.MEASUREMENT, ("z", "mask", "u"))
 
     y = property(lambda self: read_only(self.measurements["star_tracker"]["y"]),
                  doc="Innovation δp_s of the last update (eq 50).")

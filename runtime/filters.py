@@ -184,8 +184,25 @@ class Filter:
         for kernel, measurement in self._kernel_roles():
             buffers = self._buffers if measurement is None else {**self._buffers, **self.measurements[measurement]}
             self._calls[kernel] = self._backend.bind(kernel, buffers)
+        self._make_fast_paths()
+
+    def _make_fast_paths(self) -> None:
+        """The C fast path of :meth:`step` per measurement (None without the extension)."""
         self._fast = {name: self._fast_step(name, self.FAST_ARGUMENTS) for name in self.spec.step}
         self._fast_default = self._fast.get(self._default)
+
+    @property
+    def fast_path(self) -> bool:
+        """Whether plain ``step`` calls take the C fast path. Set False to send every call through
+        the Python contract (same results; for comparisons), True to restore it."""
+        return self._fast_default is not None or getattr(self, "_fast_sample", None) is not None
+
+    @fast_path.setter
+    def fast_path(self, on: bool) -> None:
+        if on:
+            self._make_fast_paths()
+        else:
+            self._fast, self._fast_default, self._fast_sample = {}, None, None
 
     def _fast_step(self, name: str, keys: tuple[str, ...]):
         """The fast path of ``step`` with measurement ``name`` (None without the C extension)."""

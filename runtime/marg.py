@@ -51,8 +51,11 @@ class MargFilter(Filter):
         self.kernel = f"gd_{form}_{mode}"
         super().__init__(compiled, self.kernel, q0, p=[_beta(beta), _alpha(alpha)])
         self._initial = self._backend.bind(f"gd_initial_{mode}", {**self._buffers, **self.measurements[mode]})
-        # step(dt, gyro, acc, mag) in C: gyro required, a missing 9-axis magnetometer sample is zeros
-        self._fast_sample = self._fast_step(mode, ("acc", "mag", "u"))
+
+    def _make_fast_paths(self) -> None:
+        """step(dt, gyro, acc, mag) in C: gyro required, a missing 9-axis magnetometer sample is zeros."""
+        super()._make_fast_paths()
+        self._fast_sample = self._fast_step(self.mode, ("acc", "mag", "u"))
 
     #: Fast path of :meth:`step`: gyro (``u``) is required; an omitted 9-axis ``mag`` is a zero sample.
     FAST_NONE = {"mag": "zeros", "u": "decline"}

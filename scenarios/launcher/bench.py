@@ -2,7 +2,11 @@
 
 Paths (rows ``{"filter", "path", "us_per_step", ...}``):
 - ``numpy_reference``: runtime/reference.py (NumPy algebra, model through CasADi calls);
-- ``compiled_step``: ``KalmanFilter.step`` — one C call per step from Python;
+- ``compiled_step``: ``KalmanFilter.step`` — one C call per step from Python (the C fast path of
+  runtime/fastcall.py: checks, copies and kernel call in one call);
+- ``compiled_step_python``: the same calls with the fast path off (``filter.fast_path = False``):
+  every call through the Python contract, as before issue 12; timed in alternate batches with
+  ``compiled_step`` so that both see the same machine load;
 - ``c_loop``: the same generated ``launcher_<filter>_step_radar`` called in a C loop (no Python),
   from a harness compiled against build/launcher/ with the library's flags;
 - ``compiled_run``: per step inside one ``launcher_<filter>_step_radar_run`` call;
@@ -84,20 +88,24 @@ def _options(family: str) -> dict:
     return {"kappa": TUNING["kappa"]} if family == "ukf" else {}
 
 
-def time_compiled_step(model, family: str, work: Workload, batch: int = 100) -> float:
-    f = model.filter(family, work.x0, work.P0, TUNING["Q"], **_options(family))
+def time_compiled_step(model, family: str, work: Workload, batch: int = 100) -> dict[str, float]:
+    """µs per ``step`` call: ``compiled_step`` (C fast path) and ``compiled_step_python`` (the
+    Python contract path), each on its own filter over the same steps, in alternate batches."""
+    filters = {path: model.filter(family, work.x0, work.P0, TUNING["Q"], **_options(family))
+               for path in ("compiled_step", "compiled_step_python")}
+    filters["compiled_step_python"].fast_path = False
     times, z, q, dt = work.base_times, work.z, work.q, 1.0 / RATE_HZ
-    batches, k = [], 0
-    while k < work.steps:
-        start = time.perf_counter()
-        for _ in range(batch):
-            i = work.index(k)
-            f.step(times[i - 1], dt, z[i], q=q[i])
-            k += 1
-        batches.append(time.perf_counter() - start)
-        if i == len(times) - 1:
-            f.x, f.P = work.x0, work.P0
-    return _median_us(batches, batch)
+    batches = {path: [] for path in filters}
+    for k0 in range(0, work.steps, batch):
+        for path, f in filters.items():
+            start = time.perf_counter()
+            for k in range(k0, k0 + batch):
+                i = work.index(k)
+                if i == 1:                      # the segment starts again (one batch's median is spared)
+                    f.x, f.P = work.x0, work.P0
+                f.step(times[i - 1], dt, z[i], q=q[i])
+            batches[path].append(time.perf_counter() - start)
+    return {path: _median_us(b, batch) for path, b in batches.items()}
 
 
 def time_compiled_run(model, family: str, work: Workload) -> float:
@@ -276,7 +284,7 @@ def measure(steps: int, reference_steps: int, campaign: bool, instructions: bool
     rows = []
     for family in FILTERS:
         figures = {"numpy_reference": time_reference(family, work, reference_steps),
-                   "compiled_step": time_compiled_step(model, family, work),
+                   **time_compiled_step(model, family, work),
                    "c_loop": c_loop[family]["us_per_step"],
                    "compiled_run": time_compiled_run(model, family, work),
                    "filterpy": time_filterpy(model, family, work, reference_steps)}
@@ -334,6 +342,7 @@ def ratios(rows: list[dict]) -> dict:
         step = value[(family, "compiled_step")]
         out[family] = {"numpy_reference/compiled_step": value[(family, "numpy_reference")] / step,
                        "compiled_step/c_loop": step / value[(family, "c_loop")],
+                       "compiled_step_python/c_loop": value[(family, "compiled_step_python")] / value[(family, "c_loop")],
                        "compiled_run/c_loop": value[(family, "compiled_run")] / value[(family, "c_loop")]}
         if (family, "filterpy") in value:
             out[family]["filterpy/compiled_step"] = value[(family, "filterpy")] / step
@@ -345,7 +354,7 @@ def ratios(rows: list[dict]) -> dict:
 
 def human_table(report: dict) -> str:
     value = {(r["filter"], r["path"]): r["us_per_step"] for r in report["rows"]}
-    paths = [p for p in ("numpy_reference", "filterpy", "compiled_step", "compiled_run", "c_loop")
+    paths = [p for p in ("numpy_reference", "filterpy", "compiled_step_python", "compiled_step", "compiled_run", "c_loop")
              if ("ekf", p) in value]
     lines = [f"{'path':<18}{'EKF us/step':>14}{'UKF us/step':>14}{'UKF/EKF':>10}",
              f"{'paper (MATLAB)':<18}{report['paper_ms_per_step']['ekf'] * 1e3:>14.1f}"

@@ -5,13 +5,15 @@
 - Build: seconds to generate and compile the ``marg`` bundle from scratch (temporary build dir).
 - µs per sample (medians over repeats) for the simplified (31) and full (26)-(30) 9-axis forms:
   ``step_bound`` (one bound C call, inputs already in the buffers: the floor of a per-sample
-  call from Python), ``step_api`` (``MargFilter.step``: argument checks and copies included),
+  call from Python), ``step_api`` (``MargFilter.step``: argument checks and copies included; the
+  C fast path of runtime/fastcall.py), ``step_api_python`` (the same calls with the fast path off:
+  the Python contract path, as before issue 12; timed in alternate repeats with ``step_api``),
   ``run`` (``MargFilter.run``: the C run loop over a whole trial), ``numpy_reference``
   (``reference_run``, on the first ``--reference-samples`` samples).
 - The generated multiplicative EKF of ``models/marg_ekf.py`` (``mekf``): µs per sample for
   ``step_bound`` (the bound C step, buffers filled), ``step_api`` (``Filter.step`` with its
-  contract checks) and ``run`` (``Filter.run`` over the whole trial: contract checks, masks and
-  the C loop); its BROAD RMSE per trial.
+  contract checks), ``step_api_python`` (as above) and ``run`` (``Filter.run`` over the whole
+  trial: contract checks, masks and the C loop); its BROAD RMSE per trial.
 - RMSE per BROAD trial (total / heading / inclination over movement phases, deg) at β = 0.041
   (Madgwick's suggested gain) and at the best β of a log sweep (grid of ``compare_marg`` plus 0.041), for both forms.
 """
@@ -68,6 +70,17 @@ def cold_build_seconds() -> float:
                 os.environ["SYMKF_BUILD_DIR"] = saved
 
 
+def _interleaved_medians(functions: dict, repeats: int) -> dict[str, float]:
+    """Median seconds of each function, called in turn ``repeats`` times (same machine load)."""
+    times = {name: [] for name in functions}
+    for _ in range(repeats):
+        for name, function in functions.items():
+            start = time.perf_counter()
+            function()
+            times[name].append(time.perf_counter() - start)
+    return {name: float(np.median(t)) for name, t in times.items()}
+
+
 def time_form(compiled, recording, form: str, args) -> dict:
     n_step = min(args.step_samples, len(recording))
     filt = MargFilter(compiled, form, "marg", beta=BETA_MADGWICK)
@@ -79,9 +92,12 @@ def time_form(compiled, recording, form: str, args) -> dict:
         for _ in range(n_step):
             bound()
 
-    def api_steps():
+    python = MargFilter(compiled, form, "marg", beta=BETA_MADGWICK, q0=filt.q)
+    python.fast_path = False
+
+    def api_steps(f=filt):
         for k in range(1, n_step):                 # dt[0] = 0 is a run's start, not a step
-            filt.step(dt[k], gyro[k], acc[k], mag[k])
+            f.step(dt[k], gyro[k], acc[k], mag[k])
 
     def whole_run():
         filt.run(dt, gyro, acc, mag)
@@ -92,9 +108,11 @@ def time_form(compiled, recording, form: str, args) -> dict:
     def reference():
         reference_run(form, "marg", q0, dt[:m], gyro[:m], acc[:m], mag[:m], BETA_MADGWICK, ALPHA_DEFAULT)
 
+    steps = _interleaved_medians({"api": api_steps, "python": lambda: api_steps(python)}, args.repeats)
     return {
         "step_bound_us": _median_seconds(raw_steps, args.repeats) / n_step * 1e6,
-        "step_api_us": _median_seconds(api_steps, args.repeats) / (n_step - 1) * 1e6,
+        "step_api_us": steps["api"] / (n_step - 1) * 1e6,
+        "step_api_python_us": steps["python"] / (n_step - 1) * 1e6,
         "run_us": _median_seconds(whole_run, args.repeats) / len(recording) * 1e6,
         "numpy_reference_us": _median_seconds(reference, max(1, args.repeats // 2)) / m * 1e6,
     }
@@ -113,17 +131,22 @@ def time_mekf(compiled, recording, args) -> dict:
         for _ in range(n_step):
             bound()
 
-    def api_steps():
+    python = ekf.make_filter(compiled, recording)
+    python.fast_path = False
+
+    def api_steps(f=filt):
         for k in range(1, n_step):
-            filt.step(recording.time[k - 1], recording.dt[k], z[k], "marg", q=mag[k], mask=mask[k],
-                      u=recording.gyro[k])
+            f.step(recording.time[k - 1], recording.dt[k], z[k], "marg", q=mag[k], mask=mask[k],
+                   u=recording.gyro[k])
 
     def whole_run():
         filt.x, filt.P = x0, P0
         filt.run(recording.time, z, "marg", q=mag, mask=mask, u=recording.gyro)
 
+    steps = _interleaved_medians({"api": api_steps, "python": lambda: api_steps(python)}, args.repeats)
     return {"step_bound_us": _median_seconds(raw_steps, args.repeats) / n_step * 1e6,
-            "step_api_us": _median_seconds(api_steps, args.repeats) / (n_step - 1) * 1e6,
+            "step_api_us": steps["api"] / (n_step - 1) * 1e6,
+            "step_api_python_us": steps["python"] / (n_step - 1) * 1e6,
             "run_us": _median_seconds(whole_run, args.repeats) / len(recording) * 1e6}
 
 
@@ -168,11 +191,13 @@ def run(args) -> int:
 def _print_tables(result: dict) -> None:
     print(f"build (generate + compile, cold): {result['build_seconds']:.2f} s")
     print(f"\nus per sample ({result['timing_trial']}):")
-    print(f"{'form':8} {'step (bound)':>13} {'step (API)':>11} {'run':>8} {'NumPy ref':>10} {'ref/run':>8}")
+    print(f"{'form':8} {'step (bound)':>13} {'step (API)':>11} {'(Python path)':>14} {'run':>8} {'NumPy ref':>10} "
+          f"{'ref/run':>8}")
     for form, t in result["timing_us_per_sample"].items():
         reference = (f"{t['numpy_reference_us']:10.1f} {t['numpy_reference_us'] / t['run_us']:8.0f}"
                      if "numpy_reference_us" in t else f"{'-':>10} {'-':>8}")
-        print(f"{form:8} {t['step_bound_us']:13.3f} {t['step_api_us']:11.2f} {t['run_us']:8.3f} {reference}")
+        print(f"{form:8} {t['step_bound_us']:13.3f} {t['step_api_us']:11.2f} {t['step_api_python_us']:14.2f} "
+              f"{t['run_us']:8.3f} {reference}")
     print("\nBROAD RMSE total/heading/inclination [deg], movement phases:")
     for trial, forms in result["rmse_deg"].items():
         for form, r in forms.items():
