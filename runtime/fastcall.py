@@ -116,9 +116,10 @@ def step(bound, t, dt, slots: list[tuple], keep_alive):
     ext = extension()
     if ext is None or getattr(bound, "c_address", None) is None:
         return None
+    buffers = [b for b, _, _ in slots] + [t, dt]
     if any(b is not None and (b.size > ext.MAX_SIZE or b.ndim != 1 or b.dtype != float or not b.flags.c_contiguous)
-           for b, _, _ in slots):
-        return None                                           # a long or unusual buffer: the Python path
+           for b in buffers):
+        return None                      # a float32 build, a long or unusual buffer: the Python path
     if_none = {"keep": ext.NONE_KEEP, "ones": ext.NONE_ONES, "zeros": ext.NONE_ZEROS,
                "decline": ext.NONE_DECLINE, "absent": ext.ABSENT}
     check = {"finite": ext.CHECK_FINITE, "mask": ext.CHECK_MASK}
