@@ -1,9 +1,12 @@
 """The build lifecycle: generate -> compile -> install, keyed by a hash of what is generated.
 
-``build_model(model)`` writes ``<root>/<folder>/`` = ``<name>.c``, ``<name>.h``, ``Makefile``,
-``manifest.json`` and ``lib<name>.so``, where ``<folder>`` is the model's name for its default
-codegen configuration and ``<name>-<cfg8>`` for any other, so switching options back and forth
-does not rebuild.
+``build_model(model)`` writes ``<root>/<folder>/`` = the C units (``<name>_api.c`` and one
+``<name>_k_<kernel>.c`` per kernel), ``<name>.h``, ``Makefile``, ``manifest.json`` and
+``lib<name>.so``, where ``<folder>`` is the model's name for its default codegen configuration
+and ``<name>-<cfg8>`` for any other, so switching options back and forth does not rebuild. The
+library is compiled from exactly these units (one compiler per core), each object cached in
+``<root>/.objects`` by the hash of the compiler, flags and the unit's text (and the header it
+includes), so an edit of the dynamics recompiles the kernels that contain the dynamics only.
 
 The content hash covers exactly what determines the library: the model's serialized CasADi
 Functions (f and every h), its description (symbols, units, sigmas, wrap flags, defaults), the
@@ -60,8 +63,9 @@ CODEGEN_DIR = Path(__file__).resolve().parent
 FRAMEWORK_MODULES = ("symkf.codegen.kernels", "symkf.codegen.discretize", "symkf.codegen.linalg",
                      "symkf.codegen.spec", "symkf.codegen.c_writer", "symkf.codegen.build",
                      "symkf.codegen.scaling", "symkf.models.base")
-#: Files of a bundle exported by ``symkf build X --out DIR`` (``{name}`` = the model's name).
-BUNDLE_FILES = ("{name}.c", "{name}.h", "Makefile", "manifest.json", "lib{name}.so")
+#: Files of a bundle exported by ``symkf build X --out DIR`` (``{name}`` = the model's name),
+#: besides the C units the manifest lists under "sources".
+BUNDLE_FILES = ("{name}.h", "Makefile", "manifest.json", "lib{name}.so")
 
 
 class BuildError(RuntimeError):
@@ -84,8 +88,10 @@ class BuildResult:
     up_to_date: bool
     seconds: float
     #: Where the time went (s): "model" (execute build() + hash), "generate" (kernels),
-    #: "write" (C text), "compile" (compile + link, cached objects reused).
+    #: "write" (C text, header), "compile" (units not in the object cache, in parallel; link).
     timings: dict = field(default_factory=dict)
+    #: The C units compiled by this build (the others came from the object cache).
+    compiled: tuple = ()
 
 
 # ---------------------------------------------------------------------- where builds go
@@ -347,156 +353,130 @@ def build_model(model, force: bool = False, **overrides) -> BuildResult:
             write_bundle(bundle, staging, key, generated, cc)
             timings["write"] = time.perf_counter() - mark - timings["generate"]
             mark = time.perf_counter()
-            compile_bundle(staging, model.name, cc, config, bundle)
+            compiled = compile_bundle(staging, model.name, cc, config)
             timings["compile"] = time.perf_counter() - mark
             _install(staging, directory)
         except BaseException:
             shutil.rmtree(staging, ignore_errors=True)
             raise
-    return _result(model.name, directory, False, start, timings)
+    return _result(model.name, directory, False, start, timings, compiled)
 
 
-def _result(name: str, directory: Path, up_to_date: bool, start: float, timings: dict | None = None) -> BuildResult:
+def _result(name: str, directory: Path, up_to_date: bool, start: float, timings: dict | None = None,
+            compiled: list[str] = ()) -> BuildResult:
     manifest = read_manifest(directory) or {}
     return BuildResult(name, directory, directory / manifest.get("hashed_library", f"lib{name}.so"),
                        directory / "manifest.json", manifest.get("content_hash", ""), up_to_date,
-                       time.perf_counter() - start, dict(timings or {}))
+                       time.perf_counter() - start, dict(timings or {}), tuple(compiled))
 
 
 def write_bundle(bundle: Bundle, directory: Path, key: str, generated: str, cc: str) -> None:
-    """Write the .c, .h, Makefile and a provisional manifest.json (no library yet)."""
+    """Write the translation units, the header, the Makefile and a provisional manifest.json
+    (no library yet; ``sources`` lists the units, the API unit first)."""
     name = bundle.model_name
-    code = c_writer.casadi_source(bundle)
-    (directory / f"{name}.c").write_text(c_writer.source(bundle, key, code))
-    (directory / f"{name}.h").write_text(c_writer.header(bundle, key, cc,
-                                                         f"{c_writer.STRICT_FLAGS} {bundle.config.optimization} -fPIC"))
-    (directory / "Makefile").write_text(c_writer.makefile(name, bundle.config.optimization))
+    sources = c_writer.units(bundle, key)
+    for file, text in sources.items():
+        (directory / file).write_text(text)
+    (directory / f"{name}.h").write_text(c_writer.header(bundle, key, cc, " ".join(compile_flags(bundle.config))))
+    (directory / "Makefile").write_text(c_writer.makefile(name, bundle.config.optimization, list(sources)))
     manifest = {"model": name, "content_hash": key, "generated_hash": generated,
                 "symkf_version": _symkf_version(), "casadi_version": ca.__version__,
                 "compiler": cc, "compiler_identity": compiler_identity(cc), "flags": c_writer.STRICT_FLAGS,
                 "optimization": bundle.config.optimization, "config": asdict(bundle.config),
-                "description": bundle.description, "library": f"lib{name}.so",
+                "description": bundle.description, "library": f"lib{name}.so", "sources": list(sources),
                 "kernels": [k.as_dict() for k in bundle.kernels],
                 "filters": [f.as_dict() for f in bundle.filters]}
     (directory / "manifest.json").write_text(json.dumps(manifest, indent=1))
 
 
-def compile_bundle(directory: Path, name: str, cc: str, config: CodegenConfig, bundle: Bundle | None = None) -> None:
-    """Compile lib<name>.so with the strict flags, copy it to the per-build name Python loads and
-    record that copy's SHA-256 in the manifest.
+def compile_flags(config: CodegenConfig) -> list[str]:
+    """Flags of every unit, in the library and in the bundle's Makefile alike."""
+    return c_writer.STRICT_FLAGS.split() + config.optimization.split() + ["-fPIC"] + c_writer.precision_flags(config)
 
-    With the bundle at hand the library is compiled from :func:`library_units` in parallel (one
-    compiler per core), each object cached by the hash of its C text, compiler and flags;
-    otherwise from the single ``<name>.c``.
-    """
-    flags = c_writer.STRICT_FLAGS.split() + config.optimization.split() + ["-fPIC"] + c_writer.precision_flags(config)
+
+@functools.lru_cache(maxsize=8)
+def measures_stack(cc: str) -> bool:
+    """Whether the compiler writes call graphs with stack frames (GCC >= 10; clang does not)."""
+    with tempfile.TemporaryDirectory() as tmp:
+        (Path(tmp) / "probe.c").write_text("int symkf_probe(void);\nint symkf_probe(void) { return 0; }\n")
+        returncode, _ = run_compiler(cc.split() + c_writer.STACK_FLAGS.split() + ["-c", "-o", "probe.o", "probe.c"],
+                                     Path(tmp))
+        return returncode == 0 and (Path(tmp) / "probe.ci").is_file()
+
+
+def compile_bundle(directory: Path, name: str, cc: str, config: CodegenConfig) -> list[str]:
+    """Compile the manifest's units in parallel (one compiler per core; a unit whose text,
+    compiler and flags match a cached object is not recompiled), fill the header's stack figures
+    from the compiler's call graphs of those same compiles, link lib<name>.so, copy it to the
+    per-build name Python loads and record that copy's SHA-256. Returns the units compiled."""
     manifest = json.loads((directory / "manifest.json").read_text())
-    hidden = flags + ["-fvisibility=hidden"]        # only the header's SYMKF_API functions are exported
-    if bundle is None:
-        objects = [_compile_units(directory, cc, hidden, {f"{name}.c": None})[0]]
-    else:
-        objects = _compile_units(directory, cc, hidden, library_units(bundle, manifest["content_hash"]))
+    stack = measures_stack(cc)
+    flags = compile_flags(config) + (c_writer.STACK_FLAGS.split() if stack else [])
+    objects, compiled = _compile_units(directory, cc, flags, manifest["sources"], f"{name}.h")
+    graphs = "".join(obj.with_suffix(".ci").read_text() for obj in objects) if stack else None
     header = directory / f"{name}.h"
-    header.write_text(c_writer.fill_stack(header.read_text(), measure_stack(directory, name, cc, flags)))
+    header.write_text(c_writer.fill_stack(header.read_text(), c_writer.stack_usage(graphs) if stack else None))
     cmd = cc.split() + ["-shared", "-o", f"lib{name}.so"] + [o.name for o in objects] + ["-lm"]
     returncode, stderr = run_compiler(cmd, directory)
     if returncode != 0:
         raise BuildError(f"linking lib{name}.so failed ({' '.join(cmd)}):\n{stderr[-4000:]}")
     for obj in objects:
-        obj.unlink()
-        if bundle is not None:
-            obj.with_suffix(".c").unlink()
+        for leftover in (obj, obj.with_suffix(".ci"), obj.with_suffix(".su")):
+            leftover.unlink(missing_ok=True)
     loaded = f"lib{name}.{manifest['content_hash'][:12]}.{secrets.token_hex(4)}.so"
     shutil.copyfile(directory / f"lib{name}.so", directory / loaded)        # a copy, never a hard link
     manifest.update(hashed_library=loaded, library_sha256=sha256_file(directory / loaded))
     (directory / "manifest.json").write_text(json.dumps(manifest, indent=1))
+    return compiled
 
 
-def measure_stack(directory: Path, name: str, cc: str, flags: list[str]) -> dict[str, int] | None:
-    """Stack bytes of every function of the flight bundle's ``<name>.c`` as the compiler measures
-    it (GCC ``-fcallgraph-info=su``: own frame + deepest call chain, :func:`c_writer.stack_usage`),
-    cached like the objects by the text, compiler and flags; None if the compiler cannot measure."""
-    text = (directory / f"{name}.c").read_text()
-    cache = directory.parent / ".objects"
-    cache.mkdir(exist_ok=True)
-    cached = cache / (hashlib.sha256(json.dumps([compiler_identity(cc), flags, text]).encode()).hexdigest()[:32] + ".ci")
-    if not cached.is_file():
-        cmd = cc.split() + flags + c_writer.STACK_FLAGS.split() + ["-c", "-o", f"{name}_stack.o", f"{name}.c"]
-        returncode, _ = run_compiler(cmd, directory)
-        for leftover in (f"{name}_stack.o", f"{name}_stack.su"):
-            (directory / leftover).unlink(missing_ok=True)
-        if returncode != 0:           # e.g. clang: no -fcallgraph-info; the header then says -1
-            return None
-        temporary = cached.with_name(f".{cached.name}.{secrets.token_hex(4)}")
-        shutil.move(directory / f"{name}_stack.ci", temporary)
-        os.replace(temporary, cached)
-    return c_writer.stack_usage(cached.read_text())
+def _unit_key(identity: str, directory: Path, file: str, header: str) -> str:
+    """Hash of what determines a unit's object: compiler, flags, its text and the header it includes."""
+    text = (directory / file).read_text()
+    if f'#include "{header}"' in text:
+        text += (directory / header).read_text()
+    return hashlib.sha256((identity + text).encode()).hexdigest()[:32]
 
 
-def _kernel_group(kernel: str) -> str:
-    """Kernels compiled together: the model functions, and each filter family (its steps call
-    its predict and updates, which then need not be compiled twice)."""
-    if kernel in ("f", "fd", "jac_fd") or kernel.startswith(("h_", "jac_h_")):
-        return "model"
-    return kernel.split("_")[0]
-
-
-def library_units(bundle: Bundle, key: str) -> dict[str, str]:
-    """The Python library's C translation units: CasADi's code of each kernel group (own prefix
-    for CasADi's internal symbols) and the symkf wrappers with the kernels' prototypes. Together
-    they are the same functions as the single ``<name>.c`` of the flight bundle."""
-    name = bundle.model_name
-    groups: dict[str, list] = {}
-    for kernel in bundle.kernels:
-        groups.setdefault(_kernel_group(kernel.name), []).append(kernel)
-    units = {}
-    for group, kernels in sorted(groups.items()):
-        part = Bundle(name, kernels, bundle.config, bundle.description)
-        units[f"{name}_part_{group}.c"] = (f'#include <math.h>\n#include "{name}.h"\n{c_writer.math_block()}\n' +
-                                           c_writer.casadi_source(part, prefix=f"{name}_{group}_casadi",
-                                                                  static_kernels=False))
-    prototypes = "".join(f"int {k.function.name()}(const casadi_real **arg, casadi_real **res, int *iw, "
-                         "casadi_real *w, int mem);\n" for k in bundle.kernels)
-    units[f"{name}_wrappers.c"] = c_writer.source(bundle, key, prototypes)
-    return units
-
-
-def _compile_units(directory: Path, cc: str, flags: list[str], units: dict[str, str | None]) -> list[Path]:
-    """Write and compile each unit to an object (text None: the file is already there), reusing
-    cached objects; returns the object paths in ``directory``."""
+def _compile_units(directory: Path, cc: str, flags: list[str], sources: list[str],
+                   header: str) -> tuple[list[Path], list[str]]:
+    """Compile each unit to an object (and its call graph, with the stack flags), reusing cached
+    ones from ``<root>/.objects``; returns the object paths in ``directory`` and the units compiled."""
     cache = directory.parent / ".objects"
     cache.mkdir(exist_ok=True)
     identity = json.dumps([compiler_identity(cc), flags])
+    graph = c_writer.STACK_FLAGS.split()[-1] in flags
+    suffixes = (".o", ".ci") if graph else (".o",)
     todo, objects = [], []
-    for file, text in units.items():
-        if text is None:
-            text = (directory / file).read_text()
-        else:
-            (directory / file).write_text(text)
+    for file in sources:
         obj = directory / (file[:-2] + ".o")
-        cached = cache / (hashlib.sha256((identity + text).encode()).hexdigest()[:32] + ".o")
+        cached = cache / _unit_key(identity, directory, file, header)
         objects.append(obj)
-        if cached.is_file():
-            shutil.copyfile(cached, obj)
+        if all(cached.with_suffix(s).is_file() for s in suffixes):
+            for suffix in suffixes:
+                shutil.copyfile(cached.with_suffix(suffix), obj.with_suffix(suffix))
         else:
-            todo.append((cc.split() + flags + ["-c", "-o", obj.name, file], obj, cached, len(text)))
+            todo.append((cc.split() + flags + ["-c", "-o", obj.name, file], obj, cached,
+                         (directory / file).stat().st_size))
     todo = [item[:3] for item in sorted(todo, key=lambda item: -item[3])]      # largest first: shortest wall time
     for (cmd, _, _), (returncode, stderr) in zip(todo, run_compilers([c for c, _, _ in todo], directory)):
         if returncode != 0:
             raise BuildError(f"compiling {cmd[-1]} failed ({' '.join(cmd)}):\n{stderr[-4000:]}")
     for _, obj, cached in todo:
-        temporary = cached.with_name(f".{cached.name}.{secrets.token_hex(4)}")
-        shutil.copyfile(obj, temporary)
-        os.replace(temporary, cached)
-    _prune(cache, keep=200)
-    return objects
+        for suffix in suffixes[::-1]:              # the object last: its presence marks a complete entry
+            temporary = cache / f".{cached.name}{suffix}.{secrets.token_hex(4)}"
+            shutil.copyfile(obj.with_suffix(suffix), temporary)
+            os.replace(temporary, cached.with_suffix(suffix))
+    _prune(cache, keep=400)
+    return objects, [cmd[-1] for cmd, _, _ in todo]
 
 
 def _prune(cache: Path, keep: int) -> None:
-    """Keep the ``keep`` most recently written cached objects."""
+    """Keep the ``keep`` most recently written cached objects (with their call graphs)."""
     objects = sorted(cache.glob("*.o"), key=lambda p: p.stat().st_mtime, reverse=True)
     for path in objects[keep:]:
         path.unlink(missing_ok=True)
+        path.with_suffix(".ci").unlink(missing_ok=True)
 
 
 #: The compiler runs under a shell that kills its whole process group (cc and its cc1, as, ld)
@@ -569,11 +549,12 @@ def _install(staging: Path, directory: Path) -> None:
 
 
 def export_bundle(result: BuildResult, out: Path) -> list[Path]:
-    """Copy the flight bundle (.c, .h, Makefile, manifest.json, lib<name>.so) into ``out``."""
+    """Copy the flight bundle (the .c units, .h, Makefile, manifest.json, lib<name>.so) into ``out``."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     copied = []
-    for pattern in BUNDLE_FILES:
+    sources = json.loads(result.manifest.read_text())["sources"]
+    for pattern in list(sources) + list(BUNDLE_FILES):
         source = result.directory / pattern.format(name=result.model)
         shutil.copyfile(source, out / source.name)
         copied.append(out / source.name)

@@ -1,7 +1,12 @@
-"""Bundle -> C99 source, header, Makefile and manifest (one self-contained .c/.h pair).
+"""Bundle -> C99 translation units, header, Makefile (the flight bundle is what Python loads).
 
-The .c file holds CasADi's generated code for every kernel, made ``static`` (only the documented
-API below is exported: ``nm -D lib<model>.so`` lists nothing else), and for each kernel:
+The bundle is one translation unit per kernel, ``<model>_k_<kernel>.c`` (CasADi's code of that
+kernel, every helper ``static``), plus ``<model>_api.c`` with the documented API below, and
+``<model>.h``. A kernel that calls another kernel (a filter step calls its predict and update)
+calls that kernel's unit instead of carrying a second copy of its code, so a dynamics edit
+recompiles the dynamics' kernels only and the units compile in parallel. Kernel units include
+nothing of ours (their text is all that determines their object); their entry points are
+``SYMKF_INTERNAL`` (hidden: ``nm -D lib<model>.so`` lists only the header's API). For each kernel:
 
 - ``int <model>_<kernel>(inputs..., outputs...)``: the public function. Scalar inputs (t, dt,
   kappa, a one-component mask) are passed by value, arrays as ``const casadi_real name[size]``,
@@ -17,13 +22,15 @@ API below is exported: ``nm -D lib<model>.so`` lists nothing else), and for each
 
 No heap, no mutable globals, every function re-entrant. Math functions are called through
 ``SYMKF_<NAME>`` macros that name the double or the float function explicitly (``-DSYMKF_FLOAT``
-selects float; no <tgmath.h>). The header is written after compiling, so its stack figures are
-the compiler's own (``-fcallgraph-info=su``: each function's frame plus its worst call path).
+selects float; no <tgmath.h>). The header's stack figures are filled in after compiling, from
+the compiler's own call graphs of the units (``-fcallgraph-info=su``: each function's frame plus
+its worst call path across the units).
 """
 from __future__ import annotations
 
 import ast
 import re
+from collections import Counter
 import tokenize
 import unicodedata
 from pathlib import Path
@@ -71,32 +78,75 @@ def raw_name(model: str, kernel: Kernel) -> str:
 
 
 # ---------------------------------------------------------------------- CasADi's code, internalised
-def casadi_source(bundle: Bundle, prefix: str | None = None, static_kernels: bool = True) -> str:
-    """CasADi's generated code for every kernel: warning-free under -Wall -Wextra, every helper
-    ``static`` (CasADi's reflection functions -- n_in, sparsity_in, incref... -- are dropped), math
-    calls through SYMKF_<NAME> macros and literals typed as casadi_real.
+#: Visibility of the kernels' entry points (called across units, never exported from the library).
+INTERNAL_BLOCK = """#ifndef SYMKF_INTERNAL
+#if defined(__GNUC__)
+#define SYMKF_INTERNAL __attribute__((visibility("hidden")))
+#else
+#define SYMKF_INTERNAL
+#endif
+#endif"""
 
-    ``prefix`` (default ``<model>_casadi``) names CasADi's internal symbols; codegen/build.py gives
-    each separately compiled part of the Python library its own, with ``static_kernels=False``
-    (the kernels' entry points are then called from the wrappers' unit and kept hidden by
-    -fvisibility=hidden instead)."""
+#: casadi_real from SYMKF_FLOAT (the header says the same).
+REAL_BLOCK = """#ifndef casadi_real
+#ifdef SYMKF_FLOAT
+#define casadi_real float
+#else
+#define casadi_real double
+#endif
+#endif"""
+
+
+def unit_file(kernel: Kernel) -> str:
+    """The translation unit of a kernel: ``<model>_k_<kernel>.c`` (named as its entry point)."""
+    return f"{kernel.function.name()}.c"
+
+
+def api_file(model: str) -> str:
+    return f"{model}_api.c"
+
+
+def kernel_unit(bundle: Bundle, kernel: Kernel) -> str:
+    """One kernel's self-contained translation unit: CasADi's code of the kernel, with the other
+    kernels it calls (a step's predict and update) declared and called in their own units."""
+    model = bundle.model_name
+    others = {raw_name(model, k) for k in bundle.kernels} - {raw_name(model, kernel)}
+    code = casadi_source(Bundle(model, [kernel], bundle.config, bundle.description),
+                         prefix=f"{raw_name(model, kernel)}_casadi", external=others)
+    return ascii_text("\n".join([
+        f"/* {GENERATED_NOTICE.format(model=model)}",
+        f" * Kernel {kernel.name}: {kernel.doc}",
+        f" * Its entry point {raw_name(model, kernel)} is called by {api_file(model)}; see {model}.h. */",
+        "#include <math.h>", "", *_precision_lines(bundle), REAL_BLOCK, "", math_block(), "", INTERNAL_BLOCK, "",
+        code]))
+
+
+def casadi_source(bundle: Bundle, prefix: str | None = None, external: set[str] = frozenset()) -> str:
+    """CasADi's generated code for the bundle's kernels: warning-free under -Wall -Wextra, every
+    helper ``static`` (CasADi's reflection functions -- n_in, sparsity_in, incref... -- are
+    dropped), each kernel's entry point ``SYMKF_INTERNAL``, math calls through SYMKF_<NAME>
+    macros and literals typed as casadi_real.
+
+    ``prefix`` (default ``<model>_casadi``) names CasADi's internal symbols (each unit has its
+    own). Functions named in ``external`` (other kernels, compiled in their own units) are
+    declared and called, not defined; helpers only they used are dropped."""
     prefix = prefix or f"{bundle.model_name}_casadi"
     gen = ca.CodeGenerator(prefix, {"with_header": False, "include_math": False,
                                     "casadi_int": "int", "prefix": prefix})
     for kernel in bundle.kernels:
         gen.add(kernel.function)
-    code = _internalise(gen.dump(), {raw_name(bundle.model_name, k) for k in bundle.kernels}, static_kernels)
+    code = _internalise(gen.dump(), {raw_name(bundle.model_name, k) for k in bundle.kernels})
+    code = _drop_unused(_externalise(code, external))
     return _typed_literals(_math_macros(_void_unused_parameters(code)))
 
 
 _EXPORTED = re.compile(r"^CASADI_SYMBOL_EXPORT [\w ]+?\**\s*\**(\w+)\(")
 _TOP_LEVEL_FUNCTION = re.compile(r"^(?:void|casadi_real|casadi_int|int|const [\w ]+?)\s*\**\s*\w+\((?!.*;\s*$)")
-_SPARSITY = re.compile(r"^static const casadi_int (casadi_s\d+)\[")
 
 
-def _internalise(source: str, kernel_symbols: set[str], static_kernels: bool = True) -> str:
-    """Keep each kernel's evaluation function (made static); drop CasADi's other exported
-    functions; make every helper static; drop sparsity tables nothing uses any more."""
+def _internalise(source: str, kernel_symbols: set[str]) -> str:
+    """Keep each kernel's evaluation function (``SYMKF_INTERNAL``); drop CasADi's other exported
+    functions; make every helper static."""
     out, lines, i = [], source.splitlines(), 0
     while i < len(lines):
         line = lines[i]
@@ -104,20 +154,89 @@ def _internalise(source: str, kernel_symbols: set[str], static_kernels: bool = T
         if match:
             end = i if line.rstrip().endswith("}") else _closing_brace(lines, i)
             if match.group(1) in kernel_symbols and "casadi_real** arg" in line:
-                keyword = "static" if static_kernels else ""
-                out += [(keyword + line[len("CASADI_SYMBOL_EXPORT"):]).lstrip()] + lines[i + 1:end + 1]
+                out += ["SYMKF_INTERNAL" + line[len("CASADI_SYMBOL_EXPORT"):]] + lines[i + 1:end + 1]
             i = end + 1
             continue
         out.append("static " + line if _TOP_LEVEL_FUNCTION.match(line) else line)
         i += 1
-    text = "\n".join(out)
-    kept = []
-    for line in text.splitlines():
-        table = _SPARSITY.match(line)
-        if table and len(re.findall(rf"\b{table.group(1)}\b", text)) <= 2:   # its #define + itself
+    return "\n".join(out) + "\n"
+
+
+_CALLED = re.compile(r"^/\* (\w+):\(")
+_STATIC_FUNCTION = re.compile(r"^static int (casadi_f\d+)\(const casadi_real\*\* arg, ")
+
+
+def _externalise(source: str, external: set[str]) -> str:
+    """Replace the definition of every called function named in ``external`` (CasADi emits it as
+    ``/* name:(...) */ static int casadi_fN(...) {...}``) by a declaration of ``name``, and
+    point CasADi's ``casadi_fN`` at it."""
+    if not external:
+        return source
+    out, lines, i, renamed = [], source.splitlines(), 0, {}
+    while i < len(lines):
+        called = _CALLED.match(lines[i])
+        static = _STATIC_FUNCTION.match(lines[i + 1]) if called and i + 1 < len(lines) else None
+        if called and static and called.group(1) in external:
+            renamed[static.group(1)] = called.group(1)
+            out += [f"/* {called.group(1)}: defined in {called.group(1)}.c */",
+                    f"SYMKF_INTERNAL int {called.group(1)}(const casadi_real** arg, casadi_real** res, "
+                    "casadi_int* iw, casadi_real* w, int mem);"]
+            i = _closing_brace(lines, i + 1) + 1
             continue
-        kept.append(line)
-    return "\n".join(kept) + "\n"
+        out.append(lines[i])
+        i += 1
+    text = "\n".join(out) + "\n"
+    for local, name in renamed.items():
+        text = re.sub(rf"^#define {local} CASADI_PREFIX\(\w+\)$", f"#define {local} {name}", text, flags=re.M)
+    return text
+
+
+_IDENT = re.compile(r"\bcasadi_\w+\b")
+_STATIC_DEFINITION = re.compile(r"^static [^=(]*?\b(casadi_\w+)\s*[\[(]")
+
+
+def _static_blocks(lines: list[str]) -> list[tuple[str, int, int]]:
+    """(name, first line, last line) of every top-level static function or table."""
+    blocks, i = [], 0
+    while i < len(lines):
+        match = _STATIC_DEFINITION.match(lines[i])
+        if not match:
+            i += 1
+            continue
+        end = i
+        if match.group(0).endswith("["):                              # a table: up to its ';'
+            while not lines[end].rstrip().endswith(";"):
+                end += 1
+        elif not (lines[i].rstrip().endswith("}") and "{" in lines[i]):  # a function over several lines
+            end = _closing_brace(lines, i)
+        blocks.append((match.group(1), i, end))
+        i = end + 1
+    return blocks
+
+
+def _drop_unused(source: str) -> str:
+    """Remove static functions and tables nothing refers to any more (with their CASADI_PREFIX
+    #define), repeatedly: e.g. the helpers of a function now called in another unit."""
+    lines = source.splitlines()
+    blocks = _static_blocks(lines)
+    uses = Counter(_IDENT.findall(source))
+    inside = {name: Counter(_IDENT.findall("\n".join(lines[a:b + 1]))) for name, a, b in blocks}
+    defines = {m.group(1): n for n, line in enumerate(lines)
+               for m in [re.match(r"^#define (casadi_\w+) ", line)] if m}
+    dropped, changed = set(), True
+    while changed:
+        changed = False
+        for name, _, _ in blocks:
+            if name in dropped:
+                continue
+            outside = uses[name] - inside[name][name] - (1 if name in defines else 0)
+            if outside <= 0:
+                dropped.add(name)
+                uses.subtract(inside[name])
+                changed = True
+    removed = {n for name, a, b in blocks if name in dropped for n in range(a, b + 1)}
+    removed |= {defines[name] for name in dropped if name in defines}
+    return "\n".join(line for n, line in enumerate(lines) if n not in removed) + "\n"
 
 
 def _closing_brace(lines: list[str], start: int) -> int:
@@ -316,8 +435,12 @@ def _run_loop(model: str, kernel: Kernel) -> str:
     return "\n".join(lines)
 
 
-def source(bundle: Bundle, content_hash: str, casadi_code: str) -> str:
+def api_unit(bundle: Bundle, content_hash: str) -> str:
+    """``<model>_api.c``: the documented API (wrappers, binding entries, run loops) over the
+    kernels' entry points in their own units."""
     model = bundle.model_name
+    prototypes = [f"SYMKF_INTERNAL int {raw_name(model, k)}(const casadi_real **arg, casadi_real **res, int *iw, "
+                  "casadi_real *w, int mem);" for k in bundle.kernels]
     parts = [f"/* {GENERATED_NOTICE.format(model=model)}",
              f" * Content hash: {content_hash}. CasADi {ca.__version__}. */",
              "#include <math.h>",
@@ -332,7 +455,10 @@ def source(bundle: Bundle, content_hash: str, casadi_code: str) -> str:
              "typedef char symkf_real_is_double[(sizeof(casadi_real) == sizeof(double)) ? 1 : -1];",
              "#endif",
              "",
-             casadi_code,
+             INTERNAL_BLOCK,
+             "/* The kernels' entry points (CasADi's code, one unit each: <name>.c). */",
+             *prototypes,
+             "",
              "/* ---------------- symkf wrappers: the public API ---------------- */",
              f'const char *{model}_content_hash(void) {{ return "{content_hash}"; }}',
              ""]
@@ -341,6 +467,13 @@ def source(bundle: Bundle, content_hash: str, casadi_code: str) -> str:
         if kernel.runnable:
             parts.append(_run_loop(model, kernel))
     return ascii_text("\n".join(parts))
+
+
+def units(bundle: Bundle, content_hash: str) -> dict[str, str]:
+    """Every translation unit of the bundle, file name -> C text: the API unit, then one per kernel."""
+    out = {api_file(bundle.model_name): api_unit(bundle, content_hash)}
+    out.update({unit_file(k): kernel_unit(bundle, k) for k in bundle.kernels})
+    return out
 
 
 def public_functions(bundle: Bundle) -> list[str]:
@@ -625,9 +758,11 @@ _PREAMBLE = """ *
  * - No heap, no global or static mutable data: every function is re-entrant. Each function's
  *   stack use is given by <NAME>_STACK_BYTES: the compiler's figure ({compiler}, flags
  *   {flags}, gcc -fcallgraph-info=su) for its own frame plus its deepest chain of calls into
- *   this file; calls into libm (sin, atan2, ...) are not included. -1 means not measured.
- * - Only the functions declared here are exported (everything else in {model}.c is static).
- * - Single precision: compile {model}.c and your code with -DSYMKF_FLOAT (casadi_real becomes
+ *   the bundle's units; calls into libm (sin, atan2, ...) are not included. -1 means not measured.
+ * - Sources: {model}_api.c (these functions) and one {model}_k_<kernel>.c per kernel (CasADi's
+ *   code; its entry point is SYMKF_INTERNAL, i.e. hidden). The Makefile builds them all.
+ * - Only the functions declared here are exported (everything else is static or hidden).
+ * - Single precision: compile every .c and your code with -DSYMKF_FLOAT (casadi_real becomes
  *   float and the float math functions sinf, sqrtf, ... are called explicitly). Link with -lm.
  *
  * TIME ARGUMENTS (each function's block below repeats the rule that applies to it)
@@ -692,37 +827,48 @@ STRICT_FLAGS = "-std=c99 -Wall -Wextra -Werror -pedantic"
 STACK_FLAGS = "-fstack-usage -fcallgraph-info=su"
 
 
-def makefile(model: str, optimization: str) -> str:
+def makefile(model: str, optimization: str, sources: list[str]) -> str:
+    """A Makefile that builds the bundle's units with the same flags as the Python library (so
+    ``make stack`` reproduces the header's stack figures)."""
+    objects = [f[:-2] + ".o" for f in sources]
+    floats = [f[:-2] + "_float.o" for f in sources]
+    stacks = [f[:-2] + "_stack.o" for f in sources]
+    rules = []
+    for source, obj, flt, stk in zip(sources, objects, floats, stacks):
+        header = f" {model}.h" if source == f"{model}_api.c" else ""
+        rules += [f"{obj}: {source}{header}", f"\t$(CC) $(CFLAGS) -fPIC -c -o $@ {source}",
+                  f"{flt}: {source}{header}", f"\t$(CC) $(CFLAGS) -Wdouble-promotion -DSYMKF_FLOAT -c -o $@ {source}",
+                  f"{stk}: {source}{header}", f"\t$(CC) $(CFLAGS) -fPIC {STACK_FLAGS} -c -o $@ {source}", ""]
     return f"""# {GENERATED_NOTICE.format(model=model)}
-# Builds the flight bundle with only a C99 compiler and libm:
+# Builds the flight bundle with only a C99 compiler and libm (make -j to compile units in parallel):
 #   make            lib{model}.so and lib{model}.a (double)
 #   make float      lib{model}_float.a (casadi_real = float, -DSYMKF_FLOAT)
-#   make stack      {model}.ci: GCC's call graph with stack frames (the header's *_STACK_BYTES)
+#   make stack      {model}_stack.ci: GCC's call graphs with stack frames (the header's *_STACK_BYTES)
 CC ?= cc
 OPT ?= {optimization}
 CFLAGS ?= {STRICT_FLAGS} $(OPT)
 LDLIBS = -lm
+OBJECTS = {" ".join(objects)}
+FLOAT_OBJECTS = {" ".join(floats)}
+STACK_OBJECTS = {" ".join(stacks)}
 
 all: lib{model}.so lib{model}.a
 
-{model}.o: {model}.c {model}.h
-\t$(CC) $(CFLAGS) -fPIC -c -o $@ {model}.c
+lib{model}.so: $(OBJECTS)
+\t$(CC) -shared -o $@.tmp $(OBJECTS) $(LDLIBS) && mv -f $@.tmp $@
 
-lib{model}.so: {model}.o
-\t$(CC) -shared -o $@.tmp $^ $(LDLIBS) && mv -f $@.tmp $@
+lib{model}.a: $(OBJECTS)
+\t$(AR) rcs $@ $(OBJECTS)
 
-lib{model}.a: {model}.o
-\t$(AR) rcs $@ $^
+float: lib{model}_float.a
 
-{model}_float.o: {model}.c {model}.h
-\t$(CC) $(CFLAGS) -Wdouble-promotion -DSYMKF_FLOAT -c -o $@ {model}.c
+lib{model}_float.a: $(FLOAT_OBJECTS)
+\t$(AR) rcs $@ $(FLOAT_OBJECTS)
 
-float: {model}_float.o
-\t$(AR) rcs lib{model}_float.a $^
+stack: $(STACK_OBJECTS)
+\tcat $(STACK_OBJECTS:.o=.ci) > {model}_stack.ci
 
-stack: {model}.c {model}.h
-\t$(CC) $(CFLAGS) -fPIC {STACK_FLAGS} -c -o {model}_stack.o {model}.c
-
+""" + "\n".join(rules) + """
 clean:
 \trm -f *.o *.a *.tmp *.su *.ci
 

@@ -87,7 +87,8 @@ def one_run(name: str, overrides: dict) -> dict:
             edited = _loaded_filter(path, overrides)
             edit = time.perf_counter() - start
             assert not edited.build.up_to_date
-            lines = len((edited.build.directory / f"{name}.c").read_text().splitlines())
+            sources = json.loads(edited.build.manifest.read_text())["sources"]
+            lines = sum(len((edited.build.directory / s).read_text().splitlines()) for s in sources)
         finally:
             if previous is None:
                 os.environ.pop("SYMKF_BUILD_DIR", None)

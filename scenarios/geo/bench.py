@@ -53,11 +53,12 @@ def compile_levels(levels=("-O1", "-O2", "-O3")) -> dict:
     from symkf.codegen.build import build_model
     from symkf.codegen.c_writer import STRICT_FLAGS
     result = build_model(MODEL)
+    sources = [str(result.directory / name) for name in json.loads(result.manifest.read_text())["sources"]]
     times = {}
     with tempfile.TemporaryDirectory() as tmp:
         for level in levels:
             cmd = ["cc", *STRICT_FLAGS.split(), level, "-fno-math-errno", "-fPIC", "-shared",
-                   "-o", str(Path(tmp) / "lib.so"), str(result.directory / f"{MODEL}.c"), "-lm"]
+                   "-o", str(Path(tmp) / "lib.so"), *sources, "-lm"]
             start = time.perf_counter()
             subprocess.run(cmd, check=True, capture_output=True)
             times[level] = time.perf_counter() - start

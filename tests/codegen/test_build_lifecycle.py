@@ -215,7 +215,12 @@ def test_export_bundle_anywhere(tmp_path, write_model, private_build):
     from symkf.scenarios.cli import main
     out = tmp_path / "flight"
     assert main(["build", str(write_model(tmp_path / "tracker.py")), "--out", str(out)]) == 0
-    assert sorted(p.name for p in out.iterdir()) == ["Makefile", "libtiny.so", "manifest.json", "tiny.c", "tiny.h"]
+    assert sorted(p.name for p in out.iterdir()) == ["Makefile", "libtiny.so", "manifest.json", "tiny.h", "tiny_api.c",
+                                                     "tiny_k_ekf_predict.c", "tiny_k_ekf_step_gps.c",
+                                                     "tiny_k_ekf_update_gps.c", "tiny_k_f.c", "tiny_k_fd.c",
+                                                     "tiny_k_h_gps.c", "tiny_k_jac_fd.c", "tiny_k_jac_h_gps.c"]
+    proc = subprocess.run(["make", "-j2", "-C", str(out), "all"], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr[-2000:]          # the exported units build alone
 
 
 def test_missing_compiler_falls_back_to_casadi_vm_with_same_numbers(launcher_compiled, tmp_path, monkeypatch):
