@@ -69,6 +69,8 @@ def _ascii_char(char: str) -> str:
 def ascii_text(text: str) -> str:
     """The text in plain ASCII: units such as rad^2/s and Greek letters spelled out (MISRA C:2012
     rule 3.x / a reviewer's grep for non-ASCII); anything unknown becomes ?."""
+    if text.isascii():                   # the generated code: nothing to replace
+        return text
     return "".join(c if ord(c) < 128 else _ascii_char(c) for c in text)
 
 
@@ -137,7 +139,7 @@ def casadi_source(bundle: Bundle, prefix: str | None = None, external: set[str] 
         gen.add(kernel.function)
     code = _internalise(gen.dump(), {raw_name(bundle.model_name, k) for k in bundle.kernels})
     code = _drop_unused(_externalise(code, external))
-    return _typed_literals(_math_macros(_void_unused_parameters(code)))
+    return _typed_literals(_math_macros(_void_unused_parameters(_single_copies(code))))
 
 
 _EXPORTED = re.compile(r"^CASADI_SYMBOL_EXPORT [\w ]+?\**\s*\**(\w+)\(")
@@ -150,14 +152,14 @@ def _internalise(source: str, kernel_symbols: set[str]) -> str:
     out, lines, i = [], source.splitlines(), 0
     while i < len(lines):
         line = lines[i]
-        match = _EXPORTED.match(line)
+        match = _EXPORTED.match(line) if line.startswith("CASADI_SYMBOL_EXPORT") else None
         if match:
             end = i if line.rstrip().endswith("}") else _closing_brace(lines, i)
             if match.group(1) in kernel_symbols and "casadi_real** arg" in line:
                 out += ["SYMKF_INTERNAL" + line[len("CASADI_SYMBOL_EXPORT"):]] + lines[i + 1:end + 1]
             i = end + 1
             continue
-        out.append("static " + line if _TOP_LEVEL_FUNCTION.match(line) else line)
+        out.append("static " + line if line[:1].isalpha() and _TOP_LEVEL_FUNCTION.match(line) else line)
         i += 1
     return "\n".join(out) + "\n"
 
@@ -174,7 +176,7 @@ def _externalise(source: str, external: set[str]) -> str:
         return source
     out, lines, i, renamed = [], source.splitlines(), 0, {}
     while i < len(lines):
-        called = _CALLED.match(lines[i])
+        called = _CALLED.match(lines[i]) if lines[i].startswith("/* ") else None
         static = _STATIC_FUNCTION.match(lines[i + 1]) if called and i + 1 < len(lines) else None
         if called and static and called.group(1) in external:
             renamed[static.group(1)] = called.group(1)
@@ -191,6 +193,23 @@ def _externalise(source: str, external: set[str]) -> str:
     return text
 
 
+_COPY_LOOP = re.compile(r"for \(rr=\(&(w\d+)\), cs=(\w+)(?:\+(\d+))?; cs!=\2\+(\d+); cs\+=1\) \*rr\+\+ = \*cs;")
+
+
+def _single_copies(source: str) -> str:
+    """CasADi copies one element into a scalar with a pointer loop, ``for (rr=(&w27), cs=w09+1;
+    cs!=w09+2; cs+=1) *rr++ = *cs;``, which GCC at -O1 cannot prove runs once: it then reports
+    the scalar as maybe uninitialized (an error under -Werror). Written as the one copy it is,
+    ``rr=(&w27); cs=w09+1; *rr = *cs;``, the same assignment, proved at every -O level."""
+    def one(match: re.Match) -> str:
+        first, end = int(match.group(3) or 0), int(match.group(4))
+        if end != first + 1:
+            return match.group(0)
+        offset = f"+{first}" if match.group(3) else ""
+        return f"rr=(&{match.group(1)}); cs={match.group(2)}{offset}; *rr = *cs;"
+    return _COPY_LOOP.sub(one, source)
+
+
 _IDENT = re.compile(r"\bcasadi_\w+\b")
 _STATIC_DEFINITION = re.compile(r"^static [^=(]*?\b(casadi_\w+)\s*[\[(]")
 
@@ -199,7 +218,7 @@ def _static_blocks(lines: list[str]) -> list[tuple[str, int, int]]:
     """(name, first line, last line) of every top-level static function or table."""
     blocks, i = [], 0
     while i < len(lines):
-        match = _STATIC_DEFINITION.match(lines[i])
+        match = _STATIC_DEFINITION.match(lines[i]) if lines[i].startswith("static ") else None
         if not match:
             i += 1
             continue
@@ -221,8 +240,7 @@ def _drop_unused(source: str) -> str:
     blocks = _static_blocks(lines)
     uses = Counter(_IDENT.findall(source))
     inside = {name: Counter(_IDENT.findall("\n".join(lines[a:b + 1]))) for name, a, b in blocks}
-    defines = {m.group(1): n for n, line in enumerate(lines)
-               for m in [re.match(r"^#define (casadi_\w+) ", line)] if m}
+    defines = {line.split()[1]: n for n, line in enumerate(lines) if line.startswith("#define casadi_")}
     dropped, changed = set(), True
     while changed:
         changed = False
@@ -267,7 +285,7 @@ def _void_unused_parameters(source: str) -> str:
     out = []
     for line in source.splitlines():
         out.append(line)
-        match = _DEFINITION.match(line)
+        match = _DEFINITION.match(line) if line[:1].isalpha() else None
         if match and match.group(2).strip() not in ("", "void"):
             names = [p.strip().split()[-1].lstrip("*") for p in match.group(2).split(",")]
             out.append("  " + " ".join(f"(void){name};" for name in names))
