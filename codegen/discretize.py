@@ -100,6 +100,15 @@ def first_event_after(t, events, otherwise):
     return result
 
 
+def split_times(t, dt, events, inset: float = EVENT_INSET):
+    """The parts of a step split at t_e, the first event in (t, t + dt] (double form): (h1, latest,
+    cut, h2) with [t, t + h1] (time held at most ``latest`` = t_e - inset) and [cut, cut + h2]."""
+    end = t + dt
+    event = first_event_after(t, events, end + 1.0)
+    cut = ca.fmin(event, end)
+    return cut - t, event - inset, cut, end - cut
+
+
 def event_split_step(f, t, dt, x, u, p, w, events, substeps: int, method: str = "rk4", inset: float = EVENT_INSET,
                      lengths: bool = False, y0=None):
     """x(t + dt) integrated over [t, t_e] and [t_e, t + dt], t_e the first event in (t, t + dt)
@@ -141,6 +150,7 @@ class EventBranches:
     def __init__(self, model: Model, substeps: int, method: str = "rk4", split_events: bool = True,
                  precision: str = "double"):
         self.model, self.events = model, tuple(model.events) if split_events else ()
+        self.substeps, self.method, self.precision = substeps, method, precision
         self.branches = self._branches(substeps, method, precision, increment=False)
         #: the same branches in increment form: f_inc(t, dt, x, y0, u, p, w) -> y (:func:`integrate`)
         self.increment_branches = self._branches(substeps, method, precision, increment=True)
@@ -164,18 +174,42 @@ class EventBranches:
         return (ca.Function(f"{tag}_plain", args, [plain], names, out, FUNCTION_OPTIONS),
                 ca.Function(f"{tag}_split", args, [split], names, out, FUNCTION_OPTIONS))
 
+    def segment_functions(self, name: str, outputs, output_names: list[str], options: dict):
+        """Two SX Functions of one integration segment of a point x: ``<name>``(t0, h, x, u, p) ->
+        ``outputs(x_end, x)`` over [t0, t0 + h], and ``<name>_capped``(t0, h, latest, x, u, p), its
+        time argument held at most ``latest`` (the part of a split step before the event)."""
+        model, f = self.model, continuous_dynamics(self.model)
+        t0, h, latest = ca.SX.sym("t0"), ca.SX.sym("h"), ca.SX.sym("latest")
+        x, u, p = ca.SX.sym("x", model.nx), ca.SX.sym("u", len(model.inputs)), ca.SX.sym("p", len(model.params))
+        w = ca.DM.zeros(len(model.noises))
+        free = integrate(f, t0, h, x, u, p, w, self.substeps, self.method)
+        capped = integrate(f, t0, h, x, u, p, w, self.substeps, self.method, latest=latest)
+        return (ca.Function(name, [t0, h, x, u, p], outputs(free, x), ["t0", "h", "x", "u", "p"], output_names, options),
+                ca.Function(f"{name}_capped", [t0, h, latest, x, u, p], outputs(capped, x),
+                            ["t0", "h", "latest", "x", "u", "p"], output_names, options))
+
     def function(self, name: str, inputs: list[ca.SX], input_names: list[str], outputs, output_names: list[str],
-                 options: dict, branches: tuple | None = None) -> ca.Function:
-        """``name``(inputs) -> ``outputs(fd)`` with fd each branch in turn: one SX Function without
-        events, else an MX Function whose ``Function.conditional`` evaluates the plain branch, or
-        the split one when an event lies in (t, t + dt] (``inputs`` start with t and dt)."""
+                 options: dict, branches: tuple | None = None, split=None, plain=None) -> ca.Function:
+        """``name``(inputs) -> ``outputs(fd)`` with fd each branch in turn (of ``branches``, default
+        :attr:`branches`): one SX Function without events, else an MX Function whose
+        ``Function.conditional`` evaluates the plain branch, or the split one when an event lies in
+        (t, t + dt] (``inputs`` start with t and dt).
+
+        ``split`` and ``plain``, if given, build that branch instead: ``split(*mx_inputs)`` -> MX
+        outputs (calls of existing functions: less C than a second inlined copy)."""
         branches = self.branches if branches is None else branches
-        made = [ca.Function(f"{name}_{tag}", inputs, outputs(fd), input_names, output_names, options)
-                for tag, fd in zip(("plain", "split"), branches)]
-        if len(made) == 1:
+        if len(branches) == 1:
             return ca.Function(name, inputs, outputs(branches[0]), input_names, output_names, options)
-        switch = ca.Function.conditional(f"{name}_branch", [made[0]], made[1])
-        sym = [ca.MX.sym(n, *v.shape) for n, v in zip(input_names, inputs)]
+        sym = [ca.MX.sym(n, v.sparsity()) for n, v in zip(input_names, inputs)]
+        if plain is None:
+            plain_fn = ca.Function(f"{name}_plain", inputs, outputs(branches[0]), input_names, output_names, options)
+        else:
+            plain_fn = ca.Function(f"{name}_plain", sym, plain(*sym), input_names, output_names, options)
+        if split is None:
+            split_fn = ca.Function(f"{name}_split", inputs, outputs(branches[1]), input_names, output_names, options)
+        else:
+            split_fn = ca.Function(f"{name}_split", sym, split(*sym), input_names, output_names, options)
+        switch = ca.Function.conditional(f"{name}_branch", [plain_fn], split_fn)
         flag = event_in_step(sym[0], sym[1], self.events)
         return ca.Function(name, sym, switch.call([flag, *sym]), input_names, output_names, options)
 

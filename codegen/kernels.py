@@ -23,7 +23,7 @@ import casadi as ca
 
 from symkf.models.base import Model
 from . import linalg
-from .discretize import (FUNCTION_OPTIONS, INTEGRATORS, EventBranches, continuous_dynamics, discrete_step,
+from .discretize import (FUNCTION_OPTIONS, INTEGRATORS, EventBranches, continuous_dynamics, discrete_step, split_times,
                          measurement_function)
 from .spec import STATUS_GATED, STATUS_NONFINITE, STATUS_NOT_PD, Arg, CodegenConfig, Family, FilterSpec, Kernel
 
@@ -131,38 +131,44 @@ class Propagation:
     fd_and_jac: ca.Function
     branches: EventBranches
     prefix: str
-    _columns: dict = field(default_factory=dict, compare=False, repr=False)
+    point_functions: dict = field(default_factory=dict, compare=False, repr=False)   # fd_at_points, increments
 
-    def fd_columns(self, k: int) -> ca.Function:
-        """``<prefix>_fd_columns<k>``(t, dt, X, u, p) -> f_d applied to each of the k columns of X
-        (one function per event branch, called, not inlined): the columns share every term of f_d
-        that depends on time only (thrust, mass, guidance), which CSE evaluates once, not k times."""
-        if k not in self._columns:
+    def fd_at_points(self, tag: str, inputs: dict[str, ca.SX], points) -> ca.Function:
+        """``<prefix>_fd_<tag>``(t, dt, *inputs, u, p) -> f_d at each of ``points(*inputs)`` (a list
+        of state vectors), as the columns of one matrix: one function per event branch, called,
+        not inlined. The points are formed inside, so CSE sees what they share: every term of f_d
+        that depends on time only (thrust, mass, guidance) is evaluated once, not once per point,
+        and so is a term of a state component that several points leave unchanged."""
+        if tag not in self.point_functions:
             model = self.branches.model
-            t, dt, X = model.t, ca.SX.sym("dt"), ca.SX.sym("X", model.nx, k)
+            t, dt = model.t, ca.SX.sym("dt")
             u, p = ca.SX.sym("u", len(model.inputs)), ca.SX.sym("p", len(model.params))
             w = ca.DM.zeros(len(model.noises))
-            self._columns[k] = self.branches.function(
-                f"{self.prefix}_fd_columns{k}", [t, dt, X, u, p], ["t", "dt", "X", "u", "p"],
-                lambda fd: [ca.horzcat(*[fd(t, dt, X[:, i], u, p, w) for i in range(k)])], ["X"],
-                dict(FUNCTION_OPTIONS, never_inline=True))
-        return self._columns[k]
+            args, names = [t, dt, *inputs.values(), u, p], ["t", "dt", *inputs, "u", "p"]
+            # the split branch (steps holding an event: 4 a flight) calls f_d point by point
+            self.point_functions[tag] = self.branches.function(
+                f"{self.prefix}_fd_{tag}", args, names,
+                lambda fd: [ca.horzcat(*[fd(t, dt, pt, u, p, w) for pt in points(*inputs.values())])], ["X"],
+                dict(FUNCTION_OPTIONS, never_inline=True),
+                split=lambda t, dt, *rest: [ca.horzcat(*[self.fd(t, dt, pt, rest[-2], rest[-1])
+                                                        for pt in points(*rest[:-2])])])
+        return self.point_functions[tag]
 
     def increment_columns(self, k: int) -> ca.Function:
         """``<prefix>_increment_columns<k>``(t, dt, x, D, u, p) -> Y: column i of Y is the step of
         x + D[:, i] as an increment of x (codegen/discretize.py ``integrate``'s increment form), one
-        function per event branch like :meth:`fd_columns`. A float UKF propagates its sigma-point
+        function per event branch like :meth:`fd_at_points`. A float UKF propagates its sigma-point
         offsets with it, never forming differences of numbers of the state's magnitude."""
-        if ("increment", k) not in self._columns:
+        if ("increment", k) not in self.point_functions:
             model = self.branches.model
             t, dt, x, D = model.t, ca.SX.sym("dt"), ca.SX.sym("x", model.nx), ca.SX.sym("D", model.nx, k)
             u, p = ca.SX.sym("u", len(model.inputs)), ca.SX.sym("p", len(model.params))
             w = ca.DM.zeros(len(model.noises))
-            self._columns["increment", k] = self.branches.function(
+            self.point_functions["increment", k] = self.branches.function(
                 f"{self.prefix}_increment_columns{k}", [t, dt, x, D, u, p], ["t", "dt", "x", "D", "u", "p"],
                 lambda inc: [ca.horzcat(*[inc(t, dt, x, D[:, i], u, p, w) for i in range(k)])], ["Y"],
                 dict(FUNCTION_OPTIONS, never_inline=True), self.branches.increment_branches)
-        return self._columns["increment", k]
+        return self.point_functions["increment", k]
 
 
 class ModelFunctions:
@@ -183,15 +189,20 @@ class ModelFunctions:
         main = self._propagation(default, "")
         self.fd, self.fd_inline, self.jac_fd, self.fd_and_jac = main.fd, main.fd_inline, main.jac_fd, main.fd_and_jac
         self.noise_gain = noise_gain(model) if model.noises else None
-        self.h, self.jac_h = {}, {}
+        self.h, self.jac_h, self.h_and_jac = {}, {}, {}
         for name in model.measurements:
             h = measurement_function(model, name)
             ht, hx, hu, hp, hq = h.sx_in()
             z = h(ht, hx, hu, hp, hq)
             hargs, hnames = [ht, hx, hu, hp, hq], ["t", "x", "u", "p", "q"]
             self.h[name] = ca.Function(f"{prefix}_h_{name}", hargs, [z], hnames, ["z"], options)
-            self.jac_h[name] = ca.Function(f"{prefix}_jac_h_{name}", hargs, [ca.densify(ca.jacobian(z, hx))],
-                                           hnames, ["H"], options)
+            # z and H share the measurement's terms (trigonometry of the station and the state);
+            # H alone calls that function (one copy of the Jacobian's C)
+            both = ca.Function(f"{prefix}_h_and_jac_{name}", hargs, [z, ca.densify(ca.jacobian(z, hx))],
+                               hnames, ["z", "H"], options)
+            mx = [ca.MX.sym(n, *v.shape) for n, v in zip(hnames, hargs)]
+            self.h_and_jac[name] = both
+            self.jac_h[name] = ca.Function(f"{prefix}_jac_h_{name}", mx, [both(*mx)[1]], hnames, ["H"], options)
 
     def for_filter(self, family: str) -> Propagation:
         """The propagation functions of one family, per the config's ``<family>_*`` keys."""
@@ -220,7 +231,7 @@ class ModelFunctions:
         # f_d and F together share the primal evaluation (the EKF prediction needs both); F alone
         # calls that function (one copy of the Jacobian's C)
         fd_and_jac = branches.function(f"{prefix}_fd_and_jac", args, names, lambda fd: [step(fd), transition(fd)],
-                                       ["x", "F"], options)
+                                       ["x", "F"], options, **self._segment_calls(branches, d, prefix))
         mx = [ca.MX.sym(n, *v.shape) for n, v in zip(names, args)]
         jac_fd = ca.Function(f"{prefix}_jac_fd", mx, [fd_and_jac(*mx)[1]], names, ["F"], options)
         made = Propagation(
@@ -231,6 +242,29 @@ class ModelFunctions:
             jac_fd, fd_and_jac, branches, prefix)
         self._propagations[d] = made
         return made
+
+
+    @staticmethod
+    def _segment_calls(branches: EventBranches, d: Discretisation, prefix: str) -> dict:
+        """For an exact Jacobian of a model with events: f_d and F of both branches from calls of
+        one segment function and its time-capped twin (not inlined twice): the plain step is one
+        segment over h = (t + dt) - t, the split step two, F = F2 F1 (chain rule: the same F up
+        to the order of round-off; the plain branch's numbers are unchanged)."""
+        if d.covariance != "jacobian" or len(branches.branches) == 1 or branches.precision == "float":
+            return {}       # (a float build's split step has its own part lengths: inlined as is)
+        free, capped = branches.segment_functions(
+            f"{prefix}_segment_and_jac", lambda x_end, x: [x_end, ca.densify(ca.jacobian(x_end, x))], ["x", "F"],
+            dict(FUNCTION_OPTIONS, never_inline=True))
+
+        def plain(t, dt, x, u, p):
+            return free.call([t, (t + dt) - t, x, u, p])
+
+        def split(t, dt, x, u, p):
+            h1, latest, cut, h2 = split_times(t, dt, branches.events)
+            x_cut, F1 = capped.call([t, h1, latest, x, u, p])
+            x_end, F2 = free.call([cut, h2, x_cut, u, p])
+            return [x_end, ca.mtimes(F2, F1)]
+        return {"plain": plain, "split": split}
 
 
 def noise_gain(model: Model) -> ca.Function:

@@ -29,6 +29,7 @@ from symkf.models.base import Model
 from .. import linalg
 from ..kernels import (ModelFunctions, Symbols, all_finite, compose_step, filter_spec, innovation,
                        make_kernel, masked_finite, masked_noise, register_family, update_outputs)
+from ..discretize import measurement_function
 from ..spec import STATUS_DOMAIN, STATUS_NONFINITE, STATUS_NOT_PD, Arg, Family
 
 
@@ -69,9 +70,9 @@ def ekf_predict_expr(symbols: Symbols, fns: ModelFunctions, x, P, t, dt, Q):
 def ekf_update_expr(symbols: Symbols, fns: ModelFunctions, name: str, msym: dict, wrap, x, P, t):
     s = symbols.sym
     n = symbols.model.nx
-    z_pred = fns.h[name](t, x, s["u"], s["p"], msym["q"])
+    z_pred, H_full = fns.h_and_jac[name](t, x, s["u"], s["p"], msym["q"])
     mask = msym["mask"]
-    H = ca.diag(mask) @ fns.jac_h[name](t, x, s["u"], s["p"], msym["q"])
+    H = ca.diag(mask) @ H_full
     R = masked_noise(msym["R"], mask)
     y = innovation(msym["z"], z_pred, mask, wrap)
     S = linalg.symmetrize(H @ P @ H.T + R)
@@ -123,25 +124,34 @@ def ekf_kernels(model: Model, symbols: Symbols, fns: ModelFunctions) -> Family:
 
 
 # ---------------------------------------------------------------------- UKF
-def sigma_offsets(P: ca.SX, kappa: ca.SX):
-    """Eq (1)-(2) of paper 004 as offsets from the mean: 0, +/- columns of chol((n + kappa) P);
-    the weights, and a 0/1 success flag."""
+def sigma_factor(P: ca.SX, kappa: ca.SX):
+    """L = chol((n + kappa) P) (lower triangular), the 2n + 1 weights, and a 0/1 success flag."""
     n = P.shape[0]
     scale = n + kappa
     L, ok = linalg.cholesky(scale * P)
-    offsets = [None] + [L[:, i] for i in range(n)] + [-L[:, i] for i in range(n)]
     safe_scale = linalg.guarded(scale, scale > 0)     # n + kappa <= 0 is refused (SYMKF_ERR_DOMAIN)
     weights = [kappa / safe_scale] + [0.5 / safe_scale] * (2 * n)
-    return offsets, weights, ok * (scale > 0)
+    return L, weights, ok * (scale > 0)
+
+
+def sigma_columns(x: ca.SX, L: ca.SX) -> list[ca.SX]:
+    """Eq (1): x, x + L_i, x - L_i for the columns L_i of L."""
+    n = x.shape[0]
+    return [x] + [x + L[:, i] for i in range(n)] + [x - L[:, i] for i in range(n)]
+
+
+def sigma_offsets(P: ca.SX, kappa: ca.SX):
+    """Eq (1)-(2) of paper 004 as offsets from the mean: 0, +/- columns of chol((n + kappa) P);
+    the weights, and a 0/1 success flag."""
+    L, weights, ok = sigma_factor(P, kappa)
+    n = P.shape[0]
+    return [None] + [L[:, i] for i in range(n)] + [-L[:, i] for i in range(n)], weights, ok
 
 
 def sigma_points(x: ca.SX, P: ca.SX, kappa: ca.SX):
     """Eq (1)-(2) of paper 004: points (columns), weights, and a 0/1 success flag."""
-    offsets, weights, ok = sigma_offsets(P, kappa)
-    n = x.shape[0]
-    L = offsets[1:n + 1]
-    points = [x] + [x + L[i] for i in range(n)] + [x - L[i] for i in range(n)]
-    return points, weights, ok
+    L, weights, ok = sigma_factor(P, kappa)
+    return sigma_columns(x, L), weights, ok
 
 
 def _weighted_mean(points: list[ca.SX], weights: list, wrap: tuple[bool, ...] | None = None) -> ca.SX:
@@ -162,10 +172,14 @@ def ukf_predict_expr(symbols: Symbols, fns: ModelFunctions, x, P, t, dt, Q):
     if fns.config.precision == "float":
         return ukf_predict_deviations(symbols, fns, x, P, t, dt, Q)
     s = symbols.sym
-    points, weights, ok = sigma_points(x, P, s["kappa"])
-    fd = fns.for_filter("ukf").fd_columns(len(points))         # one call, split only at an event
-    moved = fd(t, dt, ca.horzcat(*points), s["u"], s["p"])
-    propagated = [moved[:, i] for i in range(len(points))]
+    n = x.shape[0]
+    L, weights, ok = sigma_factor(P, s["kappa"])
+    # one call, split only at an event; L lower triangular: a point x + L_i leaves x_0..x_i-1 as
+    # they are, and the function sees it (terms of those components are shared with x's)
+    fd = fns.for_filter("ukf").fd_at_points(
+        "sigma", {"x": ca.SX.sym("x", n), "L": ca.SX.sym("L", ca.Sparsity.lower(n))}, sigma_columns)
+    moved = fd(t, dt, x, ca.tril(L), s["u"], s["p"])
+    propagated = [moved[:, i] for i in range(2 * n + 1)]
     x_pred = _weighted_mean(propagated, weights)
     P_pred = sum((w * (pt - x_pred) @ (pt - x_pred).T for w, pt in zip(weights, propagated)),
                  ca.SX.zeros(P.shape)) + process_noise(symbols, fns, Q, x, t, dt)
@@ -199,7 +213,8 @@ def ukf_update_expr(symbols: Symbols, fns: ModelFunctions, name: str, msym: dict
         offsets, weights, ok = sigma_offsets(P, s["kappa"])
         deviations = [ca.SX.zeros(x.shape)] + offsets[1:]
         points = [x] + [x + d for d in offsets[1:]]
-    predicted = [fns.h[name](t, pt, s["u"], s["p"], msym["q"]) for pt in points]
+    h = measurement_function(symbols.model, name)            # inlined: the points share terms (CSE)
+    predicted = [h(t, pt, s["u"], s["p"], msym["q"]) for pt in points]
     z_pred = _weighted_mean(predicted, weights, wrap)
     dz = [mask * _angle_difference(zi, z_pred, wrap) for zi in predicted]
     dx = deviations if deviations is not None else [pt - x for pt in points]

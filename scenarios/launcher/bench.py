@@ -14,8 +14,11 @@ Paths (rows ``{"filter", "path", "us_per_step", ...}``):
   on the same model, calling our compiled f_d, F, h, H, with the same kappa.
 Each figure is the median over batches of consecutive steps of a real 20 Hz flight segment.
 ``--campaign`` adds ``campaign_wall_s``: the wall time of the default ``compare`` (4 cases x
-100 runs x both filters; ``--scheduler`` runs it on Dask), and its throughput per worker. The
-table ends with issue 12's measures: the figure on main before that work, the target, this run's.
+100 runs x both filters; ``--scheduler`` runs it on Dask), and its throughput per worker.
+``--instructions`` counts, with callgrind, the instructions of one call of each part (predict,
+update, the fused step, a step inside the run loop), printed beside 32a5243's (before the
+branching event split). The table ends with issue 12's measures: the figure in the issue, on
+32a5243, the target, and this run's.
 """
 from __future__ import annotations
 
@@ -294,6 +297,7 @@ def measure(steps: int, reference_steps: int, campaign: bool, instructions: bool
             row = {"filter": family, "path": path, "us_per_step": value}
             if path == "c_loop" and "instructions_per_step" in c_loop[family]:
                 row["instructions_per_step"] = c_loop[family]["instructions_per_step"]
+                row["instructions_by_part"] = c_loop[family]["instructions_by_part"]
             rows.append(row)
     report = {"rows": rows, "paper_ms_per_step": L.PAPER_MS_PER_STEP, "ratios": ratios(rows),
               "steps": steps, "reference_steps": reference_steps}
@@ -316,23 +320,53 @@ def time_campaign(scheduler: str | None = None, runs: int = 100) -> dict:
             "campaign_runs_per_s_per_worker": campaign.stats.runs / wall / campaign.stats.workers}
 
 
-#: Issue 12's figures on main before this work ("today") and its targets; (lower is better).
+#: Issue 12's figures on main before this work ("today", from the issue text) and its targets;
+#: (lower is better).
 ISSUE_12 = {
     "ekf instructions/step": (16554, 11000), "ukf instructions/step": (50499, 35000),
     "ekf compiled_step/c_loop": (2.24, 1.5), "ukf compiled_step/c_loop": (1.67, 1.5),
     "campaign 4x100x2 wall s": (22.9, 15.0),
 }
+#: The same measures on main 32a5243 (after issue 11's branch-free event split, before the
+#: branching one): instructions per call of each part, counted by this harness (callgrind) on that
+#: commit's build; the campaign's wall time as measured at the end of that session (shared machine).
+MAIN_32A5243 = {
+    "ekf instructions/step": 27289, "ukf instructions/step": 82574,
+    "ekf compiled_step/c_loop": None, "ukf compiled_step/c_loop": None,
+    "campaign 4x100x2 wall s": 69.0,
+}
+INSTRUCTIONS_32A5243 = {
+    "ekf": {"predict": 20431, "update": 7040, "step": 27289, "run": 27423},
+    "ukf": {"predict": 65684, "update": 16991, "step": 82574, "run": 82710},
+}
 
 
 def targets(report: dict) -> dict:
-    """Each issue-12 measure: today's figure, the target, this run's figure, and whether it is met."""
+    """Each issue-12 measure: the issue's figure, 32a5243's, the target, this run's, and whether it is met."""
     count = {r["filter"]: r.get("instructions_per_step") for r in report["rows"] if r["path"] == "c_loop"}
     now = {f"{f} instructions/step": count.get(f) for f in FILTERS}
     now.update({f"{f} compiled_step/c_loop": report["ratios"][f]["compiled_step/c_loop"] for f in FILTERS})
     now["campaign 4x100x2 wall s"] = report.get("campaign_wall_s")
-    return {name: {"today": today, "target": target, "now": now[name],
+    return {name: {"today": today, "main_32a5243": MAIN_32A5243[name], "target": target, "now": now[name],
                    "met": None if now[name] is None else bool(now[name] <= target)}
             for name, (today, target) in ISSUE_12.items()}
+
+
+def instruction_parts_table(report: dict) -> list[str]:
+    """Instructions per call of each part (predict, update, fused step, a step inside the run
+    loop), 32a5243 and now, and the run loop's own cost (run - step)."""
+    parts = {r["filter"]: r["instructions_by_part"] for r in report["rows"] if "instructions_by_part" in r}
+    if not parts:
+        return []
+    lines = ["", f"{'instructions per call':<22}" + "".join(f"{f.upper() + ' ' + when:>14}" for f in FILTERS
+                                                            for when in ("32a5243", "now"))]
+    for part in PARTS:
+        lines.append(f"{part:<22}" + "".join(f"{INSTRUCTIONS_32A5243[f][part]:>14,.0f}{parts[f][part]:>14,.0f}"
+                                             for f in FILTERS))
+    lines.append(f"{'run loop (run - step)':<22}" + "".join(
+        f"{INSTRUCTIONS_32A5243[f]['run'] - INSTRUCTIONS_32A5243[f]['step']:>14,.0f}"
+        f"{parts[f]['run'] - parts[f]['step']:>14,.0f}" for f in FILTERS))
+    return lines
 
 
 def ratios(rows: list[dict]) -> dict:
@@ -374,8 +408,10 @@ def human_table(report: dict) -> str:
                      f"{report['campaign_runs_per_s_per_worker']:.1f} runs/s per worker")
     def figure(value) -> str:
         return "-" if value is None else (f"{value:,.0f}" if value >= 1000 else f"{value:.3g}")
-    lines += ["", f"{'issue 12':<28}{'today':>10}{'target':>10}{'now':>10}  met"]
+    lines += instruction_parts_table(report)
+    lines += ["", f"{'issue 12':<28}{'today':>10}{'32a5243':>10}{'target':>10}{'now':>10}  met"]
     for name, row in report["targets"].items():
         met = "-" if row["met"] is None else ("yes" if row["met"] else "NO")
-        lines.append(f"{name:<28}{figure(row['today']):>10}{figure(row['target']):>10}{figure(row['now']):>10}  {met}")
+        lines.append(f"{name:<28}{figure(row['today']):>10}{figure(row['main_32a5243']):>10}"
+                     f"{figure(row['target']):>10}{figure(row['now']):>10}  {met}")
     return "\n".join(lines)

@@ -25,8 +25,11 @@ RUNS = ("ekf_radar", "ukf_radar", "ekf_radar_wgs84", "ukf_radar_wgs84")
 
 @pytest.fixture(scope="module")
 def launcher_functions():
+    from symkf.codegen.kernels import FAMILIES, Symbols
     model = get_model("launcher")
-    return model, ModelFunctions(model, make_config("launcher"))
+    fns = ModelFunctions(model, make_config("launcher"))
+    FAMILIES["ukf"](model, Symbols(model), fns)         # declares the UKF's sigma-point f_d
+    return model, fns
 
 
 @pytest.mark.parametrize("t, dt, expected", [(130.9, 0.05, 0), (130.95, 0.05, 1), (130.97, 0.05, 1),
@@ -40,7 +43,9 @@ def test_only_event_models_branch(launcher_functions):
     model, fns = launcher_functions
     assert len(EventBranches(model, 1).branches) == 2
     assert len(EventBranches(model, 1, split_events=False).branches) == 1
-    for function in (fns.fd, fns.fd_and_jac, fns.for_filter("ukf").fd_columns(13)):
+    sigma = [f for name, f in fns.for_filter("ukf").point_functions.items() if name == "sigma"]
+    assert len(sigma) == 1, "the UKF family propagates its sigma points through fd_at_points('sigma', ...)"
+    for function in (fns.fd, fns.fd_and_jac, *sigma):
         calls = [function.instruction_MX(k).which_function() for k in range(function.n_instructions())
                  if function.instruction_id(k) == ca.OP_CALL]
         assert [c.class_name() for c in calls] == ["Switch"]       # the C calls one branch per step
