@@ -236,7 +236,22 @@ def discrete_dynamics(model: Model, substeps: int, method: str = "rk4", split_ev
 
 
 def measurement_function(model: Model, name: str) -> ca.Function:
-    """h(t, x, u, p, q) -> z for the named measurement."""
+    """h(t, x, u, p, q) -> z for the named measurement (its own noise v, if declared, at 0)."""
     meas = model.measurements[name]
-    return ca.Function(f"h_{name}", [model.t, model.x, model.u, model.p, meas.q], [meas.h],
+    h = ca.substitute(meas.h, meas.v, ca.DM.zeros(meas.v.shape[0])) if meas.v.shape[0] else meas.h
+    return ca.Function(f"h_{name}", [model.t, model.x, model.u, model.p, meas.q], [h],
                        ["t", "x", "u", "p", "q"], ["z"], FUNCTION_OPTIONS)
+
+
+def noisy_measurement_function(model: Model, name: str) -> ca.Function:
+    """h(t, x, u, p, q, v) -> z with the measurement's own noise v (Model.measurement_noise)."""
+    meas = model.measurements[name]
+    return ca.Function(f"h_{name}_noisy", [model.t, model.x, model.u, model.p, meas.q, meas.v], [meas.h],
+                       ["t", "x", "u", "p", "q", "v"], ["z"], FUNCTION_OPTIONS)
+
+
+def exact_step_function(model: Model) -> ca.Function:
+    """The model's declared exact step φ(t, dt, x, u, p, w) (Model.set_discrete_step)."""
+    dt, step = model.discrete_step
+    return ca.Function("fd_exact", [model.t, dt, model.x, model.u, model.p, model.w], [step],
+                       ["t", "dt", "x", "u", "p", "w"], ["x_next"], FUNCTION_OPTIONS)

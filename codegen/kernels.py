@@ -55,20 +55,30 @@ class Symbols:
         }
 
     def measurement(self, name: str) -> tuple[dict[str, ca.SX], dict[str, Arg]]:
+        """Symbols and Args of one measurement's inputs and diagnostics. A quaternion measurement
+        (``Model.measurement(..., quaternion=True)``) has one mask entry for the whole quaternion and
+        a 3-vector innovation; a measurement with its own noise v has R = cov(v) (nv x nv)."""
         meas = self.model.measurements[name]
         m, units = meas.size, ", ".join(v.unit for v in meas.outputs)
+        n_mask, n_y = (1, 3) if meas.quaternion else (m, m)
+        n_r = meas.v.shape[0] or n_y
         sym = {"q": ca.SX.sym("q", meas.q.shape[0]), "z": ca.SX.sym("z", m),
-               "mask": ca.SX.sym("mask", m), "R": ca.SX.sym("R", m, m), "gate": ca.SX.sym("gate", m)}
+               "mask": ca.SX.sym("mask", n_mask), "R": ca.SX.sym("R", n_r, n_r), "gate": ca.SX.sym("gate", n_y)}
+        innovation = ("error of z relative to h(x) in the filter's chart (masked: 0)" if meas.quaternion
+                      else "innovation z - h(x) (angles wrapped, masked entries 0)")
         args = {
             "q": Arg("q", (meas.q.shape[0], 1), ", ".join(v.unit for v in meas.params) or "-",
                      f"parameters of measurement '{name}' " + str([v.name for v in meas.params])),
             "z": Arg("z", (m, 1), units, f"measurement '{name}' " + str([v.name for v in meas.outputs])),
-            "mask": Arg("mask", (m, 1), "-", "availability per component: 1 use, 0 ignore"),
-            "R": Arg("R", (m, m), "measurement units squared", "measurement noise covariance"),
-            "gate": Arg("gate", (m, 1), "-", "chi-square gate: gate[k-1] bounds y^T S^-1 y when k components "
-                        "are used; 0 = no gate"),
-            "y": Arg("y", (m, 1), units, "innovation z - h(x) (angles wrapped, masked entries 0)"),
-            "S": Arg("S", (m, m), "measurement units squared", "innovation covariance"),
+            "mask": Arg("mask", (n_mask, 1), "-", "1: use the quaternion measurement, 0: none" if meas.quaternion
+                        else "availability per component: 1 use, 0 ignore"),
+            "R": Arg("R", (n_r, n_r), ", ".join(f"({v.unit})^2" for v in meas.noise) or "measurement units squared",
+                     f"covariance of the measurement noise {[v.name for v in meas.noise]}" if meas.noise
+                     else "measurement noise covariance"),
+            "gate": Arg("gate", (n_y, 1), "-", "chi-square gate: gate[k-1] bounds y^T S^-1 y when k innovation "
+                        "components are used; 0 = no gate"),
+            "y": Arg("y", (n_y, 1), "-" if meas.quaternion else units, innovation),
+            "S": Arg("S", (n_y, n_y), "-" if meas.quaternion else "measurement units squared", "innovation covariance"),
         }
         return sym, args
 

@@ -56,6 +56,9 @@ def scaled_model(model: Model) -> Model:
     scaled._symbols = {**model._symbols, "x": [x_scaled[i] for i in range(model.nx)]}
     scaled.states = [_scaled_variable(v, s, o) for v, s, o in zip(model.states, scale, offset)]
     scaled.f = ca.substitute(model.f, x, physical) / ca.DM(scale)
+    if model.discrete_step is not None:                           # x~_{k+1} = (φ(o + S x~_k) - o) / S
+        dt, step = model.discrete_step
+        scaled.discrete_step = (dt, (ca.substitute(step, x, physical) - ca.DM(offset)) / ca.DM(scale))
     scaled.measurements = {name: copy.copy(m) for name, m in model.measurements.items()}
     for m in scaled.measurements.values():
         m.h = ca.substitute(m.h, x, physical)

@@ -12,8 +12,12 @@ maps reference-frame vectors into the body frame) and the gyro bias b (rad/s).
   b_{k+1} = b_k + η_b Δt. With η held over Δt, the discrete noises have covariances σ²/Δt
   (so that the accumulated angle/bias variances are σ_a² Δt and σ_b² Δt).
 - Star tracker (30)-(31): q_s = δq_s ⊗ q, δq_s the quaternion of the rotation vector η_s
-  (rad, white, 1σ per body axis from Table 1). η_s is declared as the measurement's runtime
-  parameter vector (zero for the prediction) so that h carries the noise non-additively.
+  (rad, white, 1σ per body axis from Table 1). q_s is a quaternion measurement and η_s its own
+  noise (``measurement_noise``): h carries the noise non-additively, R is the covariance of η_s.
+
+The filters are the generated manifold filters (``codegen/families/manifold.py``: "mekf";
+``codegen/families/quaternion_filters.py``: "sukf", the paper's separated-noise UKF, and "aukf",
+its augmented form) with paper 000's chart and noise handling chosen in ``codegen_defaults``.
 
 Table 1 of the paper is garbled in the text; the reading (shared/seeds/README.md) is
 σ_s = 0.4e-3 rad (roll, pitch), 8.1e-3 rad (yaw); σ_a = 4.36e-5 rad/s^½; σ_b = 2.01e-7 rad/s^(3/2).
@@ -84,26 +88,28 @@ def star_tracker_covariance() -> np.ndarray:
 def build() -> Model:
     model = Model("attitude", "Spacecraft attitude quaternion and gyro bias; rate gyro input, star tracker",
                   paper="Leeghim, Choi, Bang, Park (2008), Spacecraft Attitude Estimation by Unscented Filtering")
-    descriptions = {"q_x": "quaternion vector part p, x", "q_y": "quaternion vector part p, y",
-                    "q_z": "quaternion vector part p, z", "q_w": "quaternion scalar part q4"}
-    q = ca.vertcat(*[model.state(n, "-", descriptions[n]) for n in STATE_NAMES[:4]])
+    q = model.quaternion_state("q", "attitude of the body relative to the reference frame, q = [p; q4] (eq 25)")
     bias = ca.vertcat(*[model.state(f"b_{a}", "rad/s", f"gyro bias, body {a} (eq 28)") for a in AXES])
     omega_g = ca.vertcat(*[model.input(f"omega_g_{a}", "rad/s", f"gyro output, body {a} (eq 28)") for a in AXES])
     eta_a = ca.vertcat(*[model.noise(f"eta_a_{a}", "rad/s", f"gyro angle-random-walk noise, {a} (eq 29)")
                          for a in AXES])
     eta_b = ca.vertcat(*[model.noise(f"eta_b_{a}", "rad/s^2", f"gyro rate-random-walk noise, {a} (eq 29)")
                          for a in AXES])
-    q_dot = quaternion_rate(q, body_rate(omega_g, bias, eta_a))
-    model.set_dynamics({**{n: q_dot[i] for i, n in enumerate(STATE_NAMES[:4])},
+    model.set_dynamics({"q": quaternion_rate(q, body_rate(omega_g, bias, eta_a)),
                         **{f"b_{a}": eta_b[i] for i, a in enumerate(AXES)}})
-    eta_s = ca.vertcat(*model.measurement_params("star_tracker", [
-        (f"eta_s_{a}", "rad", f"star-tracker noise rotation vector, body {a} (eq 30-31; 0 to predict)")
-        for a in AXES]))
+    dt = ca.SX.sym("dt")
+    q_next, b_next = propagate(q, bias, omega_g, eta_a, eta_b, dt)
+    model.set_discrete_step({"q": q_next, **{f"b_{a}": b_next[i] for i, a in enumerate(AXES)}}, dt)
+    eta_s = ca.vertcat(*model.measurement_noise("star_tracker", [
+        (f"eta_s_{a}", "rad", f"star-tracker noise rotation vector, body {a} (eq 30-31)") for a in AXES]))
     q_s = star_tracker(q, eta_s)
-    # Small-angle 1σ of the quaternion components (vector part ≈ η_s/2); the filters use σ_s of η_s.
     model.measurement("star_tracker", [(f"q_s_{c}", "-", f"star-tracker quaternion, {c} (eq 30)", q_s[i])
                                        for i, c in enumerate(("x", "y", "z", "w"))],
-                      sigma=list(STAR_TRACKER_SIGMA / 2) + [1e-9])
-    model.filters = ("attitude",)
+                      sigma=STAR_TRACKER_SIGMA, quaternion=True)
+    # Paper 000's filters: error δq = q ⊗ q̂⁻¹ in its Shuster product (23), i.e. q = q̂ ⊗_H δq (the
+    # manifold family's "right" side), parametrised by its vector part δp (eqs (34), (41)); the
+    # exact step (44)-(45) with η held over the step, discrete noise covariance Q/Δt.
+    model.codegen_defaults = {"manifold_chart": "vector_part", "manifold_side": "right", "manifold_noise": "held"}
+    model.filters = ("mekf", "sukf", "aukf")
     model.generic_kernels = ("f", "h")        # the filters use eq (45), not the generic RK4 f_d and its Jacobian
     return model

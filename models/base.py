@@ -48,6 +48,11 @@ class Measurement:
         params: runtime parameters of this measurement only (``q``), e.g. station coordinates.
         sigma: default 1-sigma noise per component, in the component's unit.
         wrap: per component, True where it is an angle whose innovation is wrapped to (-pi, pi].
+        noise: the measurement's own noise v (:meth:`Model.measurement_noise`) when it enters h
+            non-additively; ``sigma`` is then per component of v and R is the covariance of v.
+        v: their symbols (column; empty when the noise is additive).
+        quaternion: z is a unit quaternion (scalar-last); manifold filters take its innovation
+            in their chart (a 3-vector), not as z - h.
     """
 
     name: str
@@ -57,10 +62,18 @@ class Measurement:
     q: ca.SX
     sigma: np.ndarray
     wrap: tuple[bool, ...]
+    noise: list[Variable] = field(default_factory=list)
+    v: ca.SX = field(default_factory=lambda: ca.SX(0, 1))
+    quaternion: bool = False
 
     @property
     def size(self) -> int:
         return len(self.outputs)
+
+    @property
+    def n_innovation(self) -> int:
+        """Components of the innovation: 3 for a quaternion measurement, else one per output."""
+        return 3 if self.quaternion else self.size
 
 
 @dataclass(frozen=True)
@@ -123,8 +136,11 @@ class Model:
     state_offset: list[float] = field(default_factory=list)
     #: True for the model codegen/scaling.py derives: its states are the scaled x~.
     scaled_state: bool = False
+    #: The exact discrete step, if the model has one (:meth:`set_discrete_step`): (dt, x_{k+1}).
+    discrete_step: tuple | None = None
     _symbols: dict[str, list[ca.SX]] = field(default_factory=lambda: {k: [] for k in "xupw"})
     _pending_q: tuple | None = None
+    _pending_v: tuple | None = None
 
     # ----------------------------------------------------------------- declarations
     def _declare(self, kind: str, table: list[Variable], name: str, unit: str, description: str) -> ca.SX:
@@ -254,6 +270,34 @@ class Model:
             expanded.update({f"{qs.name}_{c}": value[i] for i, c in enumerate(QUATERNION_SUFFIXES)})
         return expanded
 
+    def set_discrete_step(self, next_states: dict[str, ca.SX], dt: ca.SX) -> None:
+        """Declare the model's exact discrete step x_{k+1} = φ(t, x_k, u, p, w, dt), one expression per
+        state name (a quaternion as one 4-vector), for inputs u and noises w held constant over the
+        step of length ``dt`` (a symbol the caller made). Filters then use φ instead of integrating
+        f (codegen config ``manifold_step``); held noise has discrete covariance Q/dt
+        (``manifold_noise = "held"``). f stays the model's continuous dynamics (truth, checks)."""
+        from .checks import scalar_expression
+        if self.f is None:
+            raise ModelError(f"model '{self.name}': call set_dynamics() before set_discrete_step()")
+        if not isinstance(dt, ca.SX) or not dt.is_symbolic() or dt.numel() != 1:
+            raise ModelError(f"model '{self.name}': set_discrete_step() needs dt as a scalar SX symbol")
+        next_states = self._expand_quaternions(dict(next_states))
+        names = self.state_names()
+        missing, extra = [n for n in names if n not in next_states], [n for n in next_states if n not in names]
+        if missing or extra:
+            raise ModelError(f"model '{self.name}': the discrete step must give every state exactly once; "
+                             f"missing {missing}, not states {extra}")
+        step = ca.vertcat(*[scalar_expression(self.name, f"{n}_next", next_states[n]) for n in names])
+        self._check_free_symbols("discrete step", step, extra_allowed=[dt])
+        self.discrete_step = (dt, step)
+
+    def measurement_noise(self, measurement: str, noises: Sequence[tuple[str, str, str]]) -> list[ca.SX]:
+        """Declare the noise v of one measurement that enters h non-additively (before calling
+        :meth:`measurement`); R is then the covariance of v and ``sigma`` its 1σ per component."""
+        symbols = [ca.SX.sym(f"{measurement}_{n}") for n, _, _ in noises]
+        self._pending_v = (measurement, [Variable(*spec) for spec in noises], symbols)
+        return symbols
+
     def measurement_params(self, measurement: str, params: Sequence[tuple[str, str, str]]) -> list[ca.SX]:
         """Declare the runtime parameters of one measurement (before calling :meth:`measurement`)."""
         symbols = [ca.SX.sym(f"{measurement}_{n}") for n, _, _ in params]
@@ -262,11 +306,14 @@ class Model:
 
     def measurement(self, name: str, outputs: Sequence[tuple[str, str, str, ca.SX]],
                     sigma: Sequence[float], wrap: Sequence[bool] | None = None,
-                    allow_nondifferentiable: bool = False) -> None:
+                    allow_nondifferentiable: bool = False, quaternion: bool = False) -> None:
         """Add a measurement ``z = h(...)``: (name, unit, description, expression) per component.
 
-        ``sigma``: the default 1-sigma noise per component (> 0); ``wrap``: angle components;
-        ``allow_nondifferentiable``: h may apply floor, sign, fabs, if_else... to states on purpose.
+        ``sigma``: the default 1-sigma noise per component (> 0; per component of the measurement's
+        noise v if :meth:`measurement_noise` declared one, per error component (3) of a quaternion
+        measurement otherwise); ``wrap``: angle components; ``quaternion``: z is a unit quaternion
+        (4 outputs, scalar-last); ``allow_nondifferentiable``: h may apply floor, sign, fabs,
+        if_else... to states on purpose.
         """
         from .checks import scalar_expression
         if not isinstance(name, str) or not _C_IDENTIFIER.fullmatch(name):
@@ -278,6 +325,10 @@ class Model:
         if pending is not None and pending[0] == name:
             q_vars, q_syms = pending[1], pending[2]
             self._pending_q = None
+        v_vars, v_syms = ([], [])
+        if self._pending_v is not None and self._pending_v[0] == name:
+            v_vars, v_syms = self._pending_v[1], self._pending_v[2]
+            self._pending_v = None
         variables = [Variable(n, unit, desc) for n, unit, desc, _ in outputs]
         h = ca.vertcat(*[scalar_expression(self.name, f"measurement '{name}' component '{n}'", expr)
                          for n, _, _, expr in outputs])
@@ -290,12 +341,16 @@ class Model:
             raise ModelError(f"model '{self.name}': measurement '{name}' component '{bad[0][0]}': sigma "
                              f"{bad[0][1]} must be finite and > 0")
         wrap = tuple(bool(b) for b in (wrap if wrap is not None else [False] * len(variables)))
-        if sigma.size != len(variables) or len(wrap) != len(variables):
-            raise ModelError(f"measurement '{name}': {len(variables)} outputs but {sigma.size} sigmas "
-                             f"and {len(wrap)} wrap flags")
+        if quaternion and len(variables) != 4:
+            raise ModelError(f"measurement '{name}': a quaternion measurement has 4 outputs, got {len(variables)}")
+        n_sigma = len(v_vars) or (3 if quaternion else len(variables))
+        if sigma.size != n_sigma or len(wrap) != len(variables):
+            raise ModelError(f"measurement '{name}': {len(variables)} outputs ({n_sigma} noise components) but "
+                             f"{sigma.size} sigmas and {len(wrap)} wrap flags")
         q = ca.vertcat(*q_syms) if q_syms else ca.SX(0, 1)
-        self._check_free_symbols(f"measurement '{name}'", h, extra_allowed=q_syms)
-        self.measurements[name] = Measurement(name, variables, h, q_vars, q, sigma, wrap)
+        v = ca.vertcat(*v_syms) if v_syms else ca.SX(0, 1)
+        self._check_free_symbols(f"measurement '{name}'", h, extra_allowed=q_syms + v_syms)
+        self.measurements[name] = Measurement(name, variables, h, q_vars, q, sigma, wrap, v_vars, v, bool(quaternion))
         if allow_nondifferentiable:
             self.nondifferentiable_ok.add(name)
 
@@ -340,7 +395,9 @@ class Model:
             "events": [float(e) for e in self.events],
             "measurements": {
                 m.name: {"outputs": [v.as_dict() for v in m.outputs], "params": [v.as_dict() for v in m.params],
-                         "sigma": m.sigma.tolist(), "wrap": list(m.wrap)}
+                         "sigma": m.sigma.tolist(), "wrap": list(m.wrap),
+                         **({"noise": [v.as_dict() for v in m.noise]} if m.noise else {}),
+                         **({"quaternion": True} if m.quaternion else {})}
                 for m in self.measurements.values()},
             **({"quaternions": [qs.as_dict() for qs in self.quaternions], "error_state_dim": self.n_error}
                if self.quaternions else {}),

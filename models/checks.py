@@ -114,10 +114,11 @@ def check_unused(model: "Model") -> None:
     for meas in model.measurements.values():
         in_h = {s.name() for s in ca.symvar(meas.h)}
         used |= in_h
-        for var, sym in zip(meas.params, ca.vertsplit(meas.q)):
-            if sym.name() not in in_h:
-                raise ModelError(f"model '{model.name}': measurement '{meas.name}' parameter '{var.name}' is "
-                                 "declared but not used by that measurement")
+        for kind, variables, symbols in (("parameter", meas.params, meas.q), ("noise", meas.noise, meas.v)):
+            for var, sym in zip(variables, ca.vertsplit(symbols)):
+                if sym.name() not in in_h:
+                    raise ModelError(f"model '{model.name}': measurement '{meas.name}' {kind} '{var.name}' is "
+                                     "declared but not used by that measurement")
     if not set(model.filters) <= EQUATION_ONLY_FAMILIES:
         return
     for var, sym in zip(model.params, model._symbols["p"]):

@@ -1,9 +1,10 @@
 """Attitude filters of paper 000 over the generated kernels.
 
-:class:`AttitudeFilter` is a thin view of buffers bound once to the ``attitude`` kernels
-(``kind`` = "mekf", "ukf" (the paper's separated-space UKF) or "aukf" (full augmented UKF));
-:class:`~symkf.runtime.reference.ReferenceAttitudeFilter` is the same algebra written in NumPy.
-Both follow codegen/families/quaternion_filters.py, which documents the equations.
+:class:`AttitudeFilter` is a thin view of buffers bound once to the attitude model's generated
+manifold filters (``kind`` = "mekf": the generic multiplicative EKF, "ukf": the paper's
+separated-space UKF "sukf", "aukf": its full augmented form; codegen/families/manifold.py and
+quaternion_filters.py document the equations);
+:class:`~symkf.runtime.reference.ReferenceAttitudeFilter` is the paper's algebra written in NumPy.
 
 Conventions: x = [q; b] with q scalar-last (paper 000), P the 6x6 covariance of [δp; δb],
 δp the vector part of δq = q ⊗ q̂⁻¹ (half-angle units). Q: 6x6 PSD of [η_a; η_b]; R: 3x3
@@ -27,6 +28,10 @@ from .contract import read_only
 from .filters import Filter, RunResult
 from .reference import (DEFAULT_KAPPA, KINDS, NORM_TOLERANCE, ReferenceAttitudeFilter, _initial_state,  # noqa: F401
                         eigen_mean, unit_quaternion)
+
+#: The generated filter behind each of paper 000's filters: the generic multiplicative EKF, the
+#: separated-noise UKF and the augmented UKF of the manifold families.
+FILTER_OF_KIND = {"mekf": "mekf", "ukf": "sukf", "aukf": "aukf"}
 
 
 class AttitudeFilter(Filter):
@@ -52,7 +57,7 @@ class AttitudeFilter(Filter):
         Q = model.process_noise_psd() if Q is None else Q
         R = {self.MEASUREMENT: model.star_tracker_covariance() if R is None else R}
         options = {} if kind == "mekf" else {"kappa": kappa}
-        super().__init__(compiled, kind, x, P, Q, R=R, **options)
+        super().__init__(compiled, FILTER_OF_KIND[kind], x, P, Q, R=R, **options)
         self.kind = kind
 
     #: Fast path of :meth:`step`: the gyro output (``u``) is required, the mask always ones.
@@ -95,7 +100,7 @@ class AttitudeFilter(Filter):
                 self.t = float(self.t + dt)
                 return code
         omega_g = contract.finite_array("omega_g", omega_g, (3,))
-        return self._step(self.MEASUREMENT, self.t, dt, {"z": q_s, "mask": None}, omega_g, nan)
+        return self._step(self.MEASUREMENT, self.t, dt, {"z": q_s, "q": None, "mask": None}, omega_g, nan)
 
     def run(self, omega_g, dt, q_s) -> RunResult:
         """All steps in one compiled call (the C run loop). Step k propagates over dt[k] (> 0)
@@ -107,7 +112,7 @@ class AttitudeFilter(Filter):
         if not (np.isfinite(dt).all() and np.all(dt > 0)):
             raise ValueError("dt: every step must be finite and > 0")
         per_step = {"t": self.t + np.concatenate([[0.0], np.cumsum(dt)[:-1]]), "dt": dt}
-        per_step.update(self._run_series(self.MEASUREMENT, n_steps, {"z": q_s, "mask": None}, omega_g, "mask"))
+        per_step.update(self._run_series(self.MEASUREMENT, n_steps, {"z": q_s, "q": None, "mask": None}, omega_g, "mask"))
         result = self._run(self.MEASUREMENT, per_step, n_steps)
         return result
 

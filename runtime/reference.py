@@ -6,8 +6,11 @@
   eqs (1)-(3), redrawn for the update), as ``codegen/families/kalman.py`` generates them;
 - :class:`NumpyCDEKF`: the continuous-discrete EKF of paper 003 (``codegen/families/cd_ekf.py``);
 - :class:`ManifoldReference`: multiplicative EKF / manifold UKF (``codegen/families/manifold.py``);
-- :class:`ReferenceAttitudeFilter`: paper 000's MEKF, UKF and augmented UKF
-  (``codegen/families/quaternion_filters.py``), the quaternion mean by ``numpy.linalg.eigh``;
+- :class:`ReferenceAttitudeFilter`: paper 000's MEKF, UKF and augmented UKF written as the paper
+  writes them (Shuster product, δp charts, eqs (34)-(53)), the quaternion mean by
+  ``numpy.linalg.eigh``; the compiled filters are the generic manifold families
+  ("mekf" in ``codegen/families/manifold.py``, "sukf"/"aukf" in ``quaternion_filters.py``)
+  with the attitude model's options, so this reference checks that the generic path is paper 000;
 - :class:`ReferenceMarg` / :func:`reference_step`: paper 001's gradient-descent filter.
 
 The model is evaluated through CasADi (the same Functions the C code calls); masks and angle
@@ -21,6 +24,7 @@ import numpy as np
 from scipy.linalg import cho_factor, cho_solve, solve_triangular
 
 from symkf.codegen import make_config
+from symkf.codegen.families import manifold as manifold_family
 from symkf.codegen.families import quaternion_filters as family
 from symkf.codegen.families.cd_ekf import reference_functions
 from symkf.codegen.families.gradient_descent import ZERO_NORM, marg_functions
@@ -28,6 +32,7 @@ from symkf.codegen.kernels import ModelFunctions
 from symkf.codegen.spec import STATUS_DOMAIN, STATUS_NONFINITE, STATUS_NOT_PD
 from symkf.models import attitude as model
 from symkf.models import get_model
+from symkf.models import quaternion as quat
 from symkf.models.marg import ALPHA_DEFAULT, BETA_MADGWICK
 from .backends import SymkfError
 from .contract import as_array, covariance
@@ -382,7 +387,7 @@ class ManifoldReference:
 
 # ---------------------------------------------------------------------- attitude filters (paper 000)
 #: Largest accepted deviation of an initial quaternion's norm from 1 (smaller ones are normalised).
-NORM_TOLERANCE = family.MEASUREMENT_NORM_TOLERANCE
+NORM_TOLERANCE = manifold_family.MEASUREMENT_NORM_TOLERANCE
 #: UKF scaling κ used unless given (paper 000 leaves κ open).
 DEFAULT_KAPPA = family.DEFAULT_KAPPA
 KINDS = ("mekf", "ukf", "aukf")
@@ -414,7 +419,9 @@ def _measurement(q_s) -> np.ndarray:
 
 
 class _Functions:
-    """The CasADi Functions the reference evaluates (built once per process)."""
+    """The paper's equations as CasADi Functions the reference evaluates (built once per process):
+    the model's step (44)-(45) and star tracker (30) from models/attitude.py, and the paper's own
+    error charts in its Shuster product (23): δp of δq = q ⊗ q̂⁻¹ (34), q = δq(δp) ⊗ q̂ (41)."""
 
     _instance = None
 
@@ -425,26 +432,59 @@ class _Functions:
         return cls._instance
 
     def __init__(self):
-        fns = family.AttitudeFunctions("attitude_reference")
-        self.fns = fns
-        self.transition, self.measurement = family.error_state_jacobians(fns)
+        q, q_ref, b = ca.SX.sym("q", 4), ca.SX.sym("q_ref", 4), ca.SX.sym("b", 3)
+        omega_g, eta_a, eta_b = ca.SX.sym("omega_g", 3), ca.SX.sym("eta_a", 3), ca.SX.sym("eta_b", 3)
+        eta_s, dt, delta_x = ca.SX.sym("eta_s", 3), ca.SX.sym("dt"), ca.SX.sym("delta_x", 6)
+        self._propagate = ca.Function("propagate", [q, b, omega_g, eta_a, eta_b, dt],
+                                      list(model.propagate(q, b, omega_g, eta_a, eta_b, dt)))
+        self._star = ca.Function("star_tracker", [q, eta_s], [model.star_tracker(q, eta_s)])
+        self._error_vector = ca.Function("error_vector", [q, q_ref], [_paper_error_vector(q, q_ref)])
+        delta_q, ok = quat.quaternion_from_error_vector(delta_x[0:3])
+        self._perturb = ca.Function("perturb", [delta_x, q, b], [quat.otimes(delta_q, q), b + delta_x[3:6], ok])
+        self._psi = ca.Function("psi", [q], [quat.psi_matrix(q)])
+        self.transition, self.measurement = self._jacobians()
+
+    def _jacobians(self):
+        """F = ∂δx⁺/∂δx, G = ∂δx⁺/∂w of (44)-(45) and H = ∂δp_s/∂δx, D = ∂δp_s/∂η_s of (30), (50),
+        derived by CasADi through the paper's charts at δx = 0, w = 0, η_s = 0."""
+        x, u, dt = ca.SX.sym("x", 7), ca.SX.sym("u", 3), ca.SX.sym("dt")
+        delta_x, w, eta_s = ca.SX.sym("delta_x", 6), ca.SX.sym("w", 6), ca.SX.sym("eta_s", 3)
+        q_hat, b_hat = x[0:4], x[4:7]
+        q, b, _ = self._perturb(delta_x, q_hat, b_hat)
+        q_next, b_next = self._propagate(q, b, u, w[0:3], w[3:6], dt)
+        q_nominal, b_nominal = self._propagate(q_hat, b_hat, u, ca.SX.zeros(3), ca.SX.zeros(3), dt)
+        delta_next = ca.vertcat(_paper_error_vector(q_next, q_nominal), b_next - b_nominal)
+        zero = ca.SX.zeros(12)
+        F = ca.substitute(ca.jacobian(delta_next, delta_x), ca.vertcat(delta_x, w), zero)
+        G = ca.substitute(ca.jacobian(delta_next, w), ca.vertcat(delta_x, w), zero)
+        delta_ps = _paper_error_vector(self._star(q, eta_s), q_hat)
+        zero = ca.SX.zeros(9)
+        H = ca.substitute(ca.jacobian(delta_ps, delta_x), ca.vertcat(delta_x, eta_s), zero)
+        D = ca.substitute(ca.jacobian(delta_ps, eta_s), ca.vertcat(delta_x, eta_s), zero)
+        return (ca.Function("transition", [x, u, dt], [F, G]), ca.Function("measurement", [x], [H, D]))
 
     def perturb(self, delta_x, q, b):
-        q_i, b_i, ok = self.fns.perturb(delta_x, q, b)
+        q_i, b_i, ok = self._perturb(delta_x, q, b)
         return np.asarray(q_i).ravel(), np.asarray(b_i).ravel(), bool(ok)
 
     def propagate(self, q, b, omega_g, eta_a, eta_b, dt):
-        q_next, b_next = self.fns.propagate(q, b, omega_g, eta_a, eta_b, dt)
+        q_next, b_next = self._propagate(q, b, omega_g, eta_a, eta_b, dt)
         return np.asarray(q_next).ravel(), np.asarray(b_next).ravel()
 
     def star_tracker(self, q, eta_s) -> np.ndarray:
-        return np.asarray(self.fns.star_tracker(q, eta_s)).ravel()
+        return np.asarray(self._star(q, eta_s)).ravel()
 
     def error_vector(self, q, q_ref) -> np.ndarray:
-        return np.asarray(self.fns.error_vector(q, q_ref)).ravel()
+        return np.asarray(self._error_vector(q, q_ref)).ravel()
 
     def psi(self, q) -> np.ndarray:
-        return np.asarray(self.fns.psi(q))
+        return np.asarray(self._psi(q))
+
+
+def _paper_error_vector(q, q_ref):
+    """Eq (34): δp of δq = q ⊗ q_ref⁻¹ (Shuster product), sign chosen so that δq4 >= 0."""
+    delta_q = quat.error_quaternion(q, q_ref)
+    return ca.if_else(delta_q[3] < 0, -1, 1) * delta_q[0:3]
 
 
 def eigen_mean(quaternions: np.ndarray, weights: np.ndarray, q_ref: np.ndarray) -> np.ndarray:
@@ -591,7 +631,7 @@ class ReferenceAttitudeFilter:
 
 def _checked_measurement(z: np.ndarray) -> np.ndarray:
     norm = np.linalg.norm(z)
-    if abs(norm - 1) > family.MEASUREMENT_NORM_TOLERANCE:
+    if abs(norm - 1) > NORM_TOLERANCE:
         raise SymkfError("reference update", STATUS_DOMAIN, f"|q_s| = {norm:.6g}")
     return z / norm
 

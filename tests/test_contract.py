@@ -122,7 +122,7 @@ def _attitude_cases():
     Q = A.process_noise_psd()
     R = {"star_tracker": A.star_tracker_covariance()}
     return [Case("attitude", kind, x0, P0, Q, "star_tracker", dict({"R": R}, **({} if kind == "mekf" else {"kappa": 1.0})))
-            for kind in ("mekf", "ukf", "aukf")]
+            for kind in ("mekf", "sukf", "aukf")]
 
 
 def _marg_cases():
@@ -176,7 +176,7 @@ def run(case: Case, f, n: int, first: int = 1, **override):
     u = None if rows[0]["u"] is None else np.array([r["u"] for r in rows])
     if case.model == "attitude":       # Q/dt: every step of an attitude run has dt > 0
         per_step = {"t": np.array([r["t"] for r in rows]), "dt": np.array([r["dt"] for r in rows])}
-        per_step.update(f._run_series(case.measurement, n, {"z": z, "mask": None}, u, "raise"))
+        per_step.update(f._run_series(case.measurement, n, {"z": z, "q": None, "mask": None}, u, "raise"))
         return f._run(case.measurement, per_step, n)
     return f.run(times, z, measurement=case.measurement, q=q, u=u)
 
@@ -285,7 +285,8 @@ def _reference_states(case: Case) -> list[np.ndarray]:
         return out
     if case.model == "attitude":
         R = case.options["R"]["star_tracker"]
-        ref = ReferenceAttitudeFilter(case.name, case.x0[:4], case.x0[4:], case.P0, case.Q, R,
+        kind = {"sukf": "ukf"}.get(case.name, case.name)        # the paper's name of the separated UKF
+        ref = ReferenceAttitudeFilter(kind, case.x0[:4], case.x0[4:], case.P0, case.Q, R,
                                       kappa=case.options.get("kappa", 1.0))
         for k in range(1, N_STEPS + 1):
             a = case.inputs(k)
@@ -553,6 +554,34 @@ def test_gate_refuses_an_outlier_and_counts_it(compiled, case):
     z[2] = outlier
     result = gated.run(times, z, measurement=case.measurement, q=a["q"],
                        u=None if a["u"] is None else np.tile(a["u"], (4, 1)))
+    assert result.gated_steps == 1 and result.status[2] == STATUS_GATED and not result.failed_steps.size
+
+
+@pytest.mark.parametrize("case", [c for c in CASES if c.model == "attitude"], ids=lambda c: c.id)
+def test_attitude_gate_refuses_an_outlier_and_counts_it(compiled, case):
+    """Paper 000's filters through the generic gate: a star-tracker quaternion 11° off (σ 0.4 mrad)
+    is refused (SYMKF_GATED, the prediction kept), a normal one passes, a run counts the refusal."""
+    from scipy.spatial.transform import Rotation
+    gated, open_, predicted = (case.make(compiled["attitude"]) for _ in range(3))
+    gated.set_gate(case.measurement, probability=0.999)
+    for f in (gated, open_, predicted):
+        step(case, f, 1)
+    np.testing.assert_array_equal(gated.x, open_.x)            # a normal innovation passes the gate
+    a = case.inputs(2)
+    outlier = (Rotation.from_quat(a["z"]) * Rotation.from_rotvec([0.2, 0.0, 0.0])).as_quat()
+    assert step(case, gated, 2, z=outlier) == STATUS_GATED
+    predicted.predict(a["t"], a["dt"], u=a["u"])
+    np.testing.assert_allclose(gated.x, predicted.x, rtol=0, atol=1e-15)   # prediction applied, update refused
+    np.testing.assert_allclose(gated.P, predicted.P, rtol=1e-13, atol=0)
+    assert np.linalg.norm(gated.y(case.measurement)) > 0.05     # the diagnostics say why (δp ≈ 0.1)
+    rows = [case.inputs(k) for k in range(3, 7)]
+    near = Rotation.from_quat(gated.x[:4]) * Rotation.from_rotvec(1e-5 * np.random.default_rng(3).normal(size=(4, 3)))
+    z = near.as_quat()                                          # consistent with R and the filter's P
+    z[2] = (Rotation.from_quat(z[2]) * Rotation.from_rotvec([0.0, -0.2, 0.0])).as_quat()
+    per_step = {"t": np.array([r["t"] for r in rows]), "dt": np.array([r["dt"] for r in rows])}
+    per_step.update(gated._run_series(case.measurement, 4, {"z": z, "q": None, "mask": None},
+                                      np.array([r["u"] for r in rows]), "raise"))
+    result = gated._run(case.measurement, per_step, 4)
     assert result.gated_steps == 1 and result.status[2] == STATUS_GATED and not result.failed_steps.size
 
 

@@ -45,20 +45,25 @@ a non-PSD P or a failed factorisation -> SYMKF_ERR_NOT_PD; x and P unchanged on 
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import casadi as ca
 
 from symkf.models import quaternion as quat
 from symkf.models.base import Model
 from .. import linalg
-from ..discretize import FUNCTION_OPTIONS, measurement_function
+from ..discretize import (FUNCTION_OPTIONS, discrete_dynamics, exact_step_function, measurement_function,
+                          noisy_measurement_function)
 from ..kernels import (ModelFunctions, Symbols, all_finite, compose_step, filter_spec, innovation, make_kernel,
                        masked_finite, masked_noise, register_family, update_status, gated)
-from ..spec import STATUS_DOMAIN, STATUS_NONFINITE, STATUS_NOT_PD, Arg, Family
+from ..spec import STATUS_DOMAIN, STATUS_NONFINITE, STATUS_NOT_PD, Arg, CodegenConfig, Family
 from .kalman import UPDATE_INPUTS, _angle_difference, _predict_doc, _weighted_mean, noise_symbols, sigma_points
 from .quaternion_filters import quaternion_mean
 
 #: An input state whose quaternion norm differs from 1 by more than this is SYMKF_ERR_DOMAIN.
 QUATERNION_NORM_TOLERANCE = 1e-6
+#: A quaternion *measurement* is normalised if | |z| - 1 | <= this, SYMKF_ERR_DOMAIN otherwise.
+MEASUREMENT_NORM_TOLERANCE = 1e-3
 #: Default UKF scaling: κ = 0 as the Kalman UKF (weights 0 and 1/(2 n_e)).
 DEFAULT_KAPPA = 0.0
 
@@ -66,11 +71,55 @@ _INLINE = FUNCTION_OPTIONS
 _CALLED = dict(FUNCTION_OPTIONS, never_inline=True)
 
 
+# ---------------------------------------------------------------------- options
+@dataclass(frozen=True)
+class ManifoldOptions:
+    """How the manifold filters of one model chart, propagate and discretise the noise (codegen
+    config keys ``manifold_chart``, ``manifold_side``, ``manifold_step``, ``manifold_noise``; a model
+    sets its own in ``Model.codegen_defaults``).
+
+    Attributes:
+        chart: the error of a quaternion: "rotation_vector" (δθ, rad; Exp/Log) or "vector_part"
+            (δp, the vector part of δq = [δp; √(1 - |δp|²)], half-angle units, |δp| < 1; paper 000
+            eqs (34), (41), (52); a correction or sigma point outside |δp| < 1 is SYMKF_ERR_DOMAIN).
+        side: "right": q = q̂ ⊗ δq (Hamilton; body-frame error; paper 000's δq ⊗ q̂ in its Shuster
+            product (23) is this one), "left": q = δq ⊗ q̂ (Hamilton; reference-frame error).
+        step: "rk4" (the model's f integrated) or "exact" (the model's ``set_discrete_step``; the
+            default when the model declares one).
+        noise: "continuous": Q_d = G Q Gᵀ dt, G = ∂f/∂w at the step start (or Q dt, additive);
+            "held": the noises w are held over the step in the discrete step, Q_d = G_d (Q/dt) G_dᵀ
+            with G_d = ∂(f_d(x̂, w) ⊟ f_d(x̂, 0))/∂w (paper 000 eqs (29), (44)); needs dt > 0.
+    """
+
+    chart: str = "rotation_vector"
+    side: str = "right"
+    step: str = "rk4"
+    noise: str = "continuous"
+
+    CHOICES = {"chart": ("rotation_vector", "vector_part"), "side": ("right", "left"), "step": ("rk4", "exact"),
+               "noise": ("continuous", "held")}
+
+    @classmethod
+    def for_model(cls, model: Model, config: CodegenConfig) -> "ManifoldOptions":
+        defaults = cls(step="exact" if model.discrete_step is not None else "rk4")
+        chosen = cls(**{k: config.get(f"manifold_{k}", getattr(defaults, k)) for k in cls.CHOICES})
+        for key, allowed in cls.CHOICES.items():
+            if getattr(chosen, key) not in allowed:
+                raise ValueError(f"model '{model.name}': manifold_{key} must be one of {allowed}, "
+                                 f"got {getattr(chosen, key)!r}")
+        if chosen.step == "exact" and model.discrete_step is None:
+            raise ValueError(f"model '{model.name}': manifold_step 'exact' needs Model.set_discrete_step()")
+        if chosen.noise == "held" and not model.noises:
+            raise ValueError(f"model '{model.name}': manifold_noise 'held' needs process noises (Model.noise())")
+        return chosen
+
+
 # ---------------------------------------------------------------------- the chart
 class Chart:
     """The model's state space as a product of unit-quaternion spheres and R^k: ⊞, ⊟, projection."""
 
-    def __init__(self, model: Model):
+    def __init__(self, model: Model, options: ManifoldOptions = ManifoldOptions()):
+        self.options = options
         self.n, self.n_error = model.nx, model.n_error
         self.quaternions = [(qs.index, qs.error_index) for qs in model.quaternions]
         in_quaternion = {qs.index + k for qs in model.quaternions for k in range(4)}
@@ -87,31 +136,77 @@ class Chart:
             rows[index] = value
         return ca.vertcat(*rows)
 
+    # one quaternion: the options' error parametrisation and side
+    def error_quaternion(self, delta) -> tuple[ca.SX, ca.SX]:
+        """δq of a 3-vector error and a 0/1 flag that it is inside the chart's domain."""
+        if self.options.chart == "vector_part":
+            return quat.quaternion_from_error_vector(delta)
+        return quat.rotvec_to_quaternion(delta), ca.SX(1)
+
+    def error_vector(self, delta_q) -> ca.SX:
+        """The 3-vector of an error quaternion (the shorter rotation: δq and -δq give the same)."""
+        if self.options.chart == "vector_part":
+            return ca.if_else(delta_q[3] < 0, -1, 1) * delta_q[0:3]
+        return quat.quaternion_to_rotvec(delta_q)
+
+    def quaternion_retract(self, q, delta) -> ca.SX:
+        """q ⊞ δ: q ⊗ δq (right) or δq ⊗ q (left), Hamilton, renormalised."""
+        delta_q, _ = self.error_quaternion(delta)
+        moved = quat.hamilton(q, delta_q) if self.options.side == "right" else quat.hamilton(delta_q, q)
+        return quat.normalize(moved)
+
+    def quaternion_local(self, q, q_ref) -> ca.SX:
+        """q ⊟ q_ref: the error vector of q_ref⁻¹ ⊗ q (right) or q ⊗ q_ref⁻¹ (left)."""
+        q, q_ref = quat.normalize(q), quat.conjugate(quat.normalize(q_ref))
+        return self.error_vector(quat.hamilton(q_ref, q) if self.options.side == "right" else quat.hamilton(q, q_ref))
+
     def retract(self, x, delta) -> ca.SX:
-        """x ⊞ δ: q ⊗ Exp(δθ) per quaternion (renormalised), x + δ for ordinary states."""
-        qs = [(i, quat.normalize(quat.hamilton(x[i:i + 4], quat.rotvec_to_quaternion(delta[e:e + 3]))))
-              for i, e in self.quaternions]
+        """x ⊞ δ: the quaternion retraction per quaternion, x + δ for ordinary states."""
+        qs = [(i, self.quaternion_retract(x[i:i + 4], delta[e:e + 3])) for i, e in self.quaternions]
         return self._assemble(self.n, qs, [(i, x[i] + delta[e]) for i, e in self.ordinary])
 
     def local(self, x, x_ref) -> ca.SX:
-        """x ⊟ x_ref: Log(q_ref⁻¹ ⊗ q) (rad, shorter rotation) per quaternion, x - x_ref otherwise."""
-        qs = [(e, quat.quaternion_to_rotvec(quat.hamilton(quat.conjugate(quat.normalize(x_ref[i:i + 4])),
-                                                          quat.normalize(x[i:i + 4]))))
-              for i, e in self.quaternions]
+        """x ⊟ x_ref: the quaternion error vector per quaternion, x - x_ref otherwise."""
+        qs = [(e, self.quaternion_local(x[i:i + 4], x_ref[i:i + 4])) for i, e in self.quaternions]
         return self._assemble(self.n_error, qs, [(e, x[i] - x_ref[i]) for i, e in self.ordinary])
 
     def retract_linear(self, x, delta) -> ca.SX:
-        """q ⊗ [δθ/2; 1] per quaternion (not renormalised), x + δ otherwise: equal to x ⊞ δ to
-        first order at δ = 0, so its Jacobian there is ∂(x ⊞ δ)/∂δ (½ L(q̂) on the vector part)
-        without the series and trigonometry of Exp."""
-        qs = [(i, quat.hamilton(x[i:i + 4], ca.vertcat(0.5 * delta[e:e + 3], 1))) for i, e in self.quaternions]
+        """δq ≈ [δ/c; 1] composed on the chart's side (c = 2 for rotation vectors, 1 for vector
+        parts; not renormalised), x + δ otherwise: equal to x ⊞ δ to first order at δ = 0, so its
+        Jacobian there is ∂(x ⊞ δ)/∂δ without the series and trigonometry of Exp."""
+        scale = 0.5 if self.options.chart == "rotation_vector" else 1.0
+        qs = [(i, self._compose(x[i:i + 4], ca.vertcat(scale * delta[e:e + 3], 1))) for i, e in self.quaternions]
         return self._assemble(self.n, qs, [(i, x[i] + delta[e]) for i, e in self.ordinary])
 
+    def quaternion_local_linear(self, q, q_ref) -> ca.SX:
+        """c vec(q_ref⁻¹ ⊗ q) (right) or c vec(q ⊗ q_ref⁻¹) (left) for unit q, q_ref: equal to
+        q ⊟ q_ref to first order at q = q_ref (Log(q) = 2 vec(q) + O(|δθ|³)), without atan2."""
+        scale = 2.0 if self.options.chart == "rotation_vector" else 1.0
+        error = quat.hamilton(quat.conjugate(q_ref), q) if self.options.side == "right" else \
+            quat.hamilton(q, quat.conjugate(q_ref))
+        return scale * error[:3]
+
     def local_linear(self, x, x_ref) -> ca.SX:
-        """2 vec(q_ref⁻¹ ⊗ q) per quaternion (q and q_ref unit), x - x_ref otherwise: equal to
-        x ⊟ x_ref to first order at x = x_ref (Log(q) = 2 vec(q) + O(|δθ|³)), without atan2."""
-        qs = [(e, 2 * quat.hamilton(quat.conjugate(x_ref[i:i + 4]), x[i:i + 4])[:3]) for i, e in self.quaternions]
+        """The first-order x ⊟ x_ref: :meth:`quaternion_local_linear` per quaternion, x - x_ref otherwise."""
+        qs = [(e, self.quaternion_local_linear(x[i:i + 4], x_ref[i:i + 4])) for i, e in self.quaternions]
         return self._assemble(self.n_error, qs, [(e, x[i] - x_ref[i]) for i, e in self.ordinary])
+
+    def _compose(self, q, delta_q) -> ca.SX:
+        return quat.hamilton(q, delta_q) if self.options.side == "right" else quat.hamilton(delta_q, q)
+
+    def in_domain_all(self, deltas) -> ca.SX:
+        """1 if every δ of a sigma set is inside the chart."""
+        flag = ca.SX(1)
+        for d in deltas:
+            flag = flag * self.in_domain(d)
+        return flag
+
+    def in_domain(self, delta) -> ca.SX:
+        """1 if every quaternion error of δ is inside the chart (always, for rotation vectors)."""
+        flag = ca.SX(1)
+        for _, e in self.quaternions:
+            flag = flag * self.error_quaternion(delta[e:e + 3])[1]
+        return flag
 
     def project(self, x) -> ca.SX:
         """Every quaternion onto the unit sphere (q / |q|); ordinary states unchanged."""
@@ -127,40 +222,91 @@ class Chart:
 
 
 class ManifoldFunctions:
-    """CasADi Functions of the chart and the model, shared by both families and the NumPy reference."""
+    """CasADi Functions of the chart and the model, shared by every manifold family and the NumPy
+    reference: retraction, local coordinates, the step f_d (RK4 or the model's exact step) with its
+    error-state transition F, the held-noise gain G_d, and per measurement h, its residual in the
+    chart (quaternion measurements), H = ∂r/∂δ and D = ∂r/∂v (measurement noise v)."""
 
     def __init__(self, model: Model, fns: ModelFunctions):
-        chart = Chart(model)
+        self.options = ManifoldOptions.for_model(model, fns.config)
+        chart = Chart(model, self.options)
         prefix, n, ne = model.name, model.nx, model.n_error
         t, dt = ca.SX.sym("t"), ca.SX.sym("dt")
         x, x_ref, delta = ca.SX.sym("x", n), ca.SX.sym("x_ref", n), ca.SX.sym("delta", ne)
-        u, p = ca.SX.sym("u", len(model.inputs)), ca.SX.sym("p", len(model.params))
-        self.chart, self.fns = chart, fns
+        u, p, w = ca.SX.sym("u", len(model.inputs)), ca.SX.sym("p", len(model.params)), ca.SX.sym("w", len(model.noises))
+        self.chart, self.fns, self.model = chart, fns, model
         self.retract = ca.Function(f"{prefix}_retract", [x, delta], [chart.retract(x, delta)], ["x", "delta"], ["x"],
                                    _CALLED)
         self.local = ca.Function(f"{prefix}_local", [x, x_ref], [chart.local(x, x_ref)], ["x", "x_ref"], ["delta"],
                                  _CALLED)
-        step = chart.project(fns.fd_inline(t, dt, x, u, p))
+        self.fd_noisy = self._noisy_step(model, fns)
+        fd = (lambda *a: self.fd_noisy(*a, ca.DM.zeros(len(model.noises)))) if self.options.step == "exact" \
+            else fns.fd_inline
+        step = chart.project(fd(t, dt, x, u, p))
         self.step = ca.Function(f"{prefix}_manifold_fd", [t, dt, x, u, p], [step],
                                 ["t", "dt", "x", "u", "p"], ["x"], _CALLED)
         # F and H at δ = 0 through the first-order chart (same derivatives, far fewer operations),
         # sparse: structural zeros (e.g. a bias that does not depend on the attitude) cost nothing
         zero = ca.DM.zeros(ne)
-        moved = chart.local_linear(chart.project(fns.fd_inline(t, dt, chart.retract_linear(x, delta), u, p)), step)
+        moved = chart.local_linear(chart.project(fd(t, dt, chart.retract_linear(x, delta), u, p)), step)
         F = ca.substitute(ca.jacobian(moved, delta), delta, zero)
         self.step_and_jac = ca.Function(f"{prefix}_manifold_fd_and_jac", [t, dt, x, u, p], [step, F],
                                         ["t", "dt", "x", "u", "p"], ["x", "F"], _CALLED)
         # ∂(x ⊟ x̂)/∂x at x = x̂ (n_e x n): maps state-space noise into error coordinates
         J = ca.substitute(ca.jacobian(chart.local(x, x_ref), x), x, x_ref)
         self.local_jacobian = ca.Function(f"{prefix}_local_jacobian", [x_ref], [ca.densify(J)], ["x"], ["J"], _INLINE)
-        self.h, self.jac_h = {}, {}
+        if self.options.noise == "held":    # G_d = ∂(f_d(x̂, w) ⊟ f_d(x̂, 0))/∂w at w = 0
+            G = ca.jacobian(chart.local_linear(chart.project(self.fd_noisy(t, dt, x, u, p, w)), step), w)
+            G = ca.substitute(G, w, ca.DM.zeros(w.shape[0]))
+            self.held_noise_gain = ca.Function(f"{prefix}_held_noise_gain", [t, dt, x, u, p], [ca.densify(G)],
+                                               ["t", "dt", "x", "u", "p"], ["G"], _INLINE)
+        self.h, self.jac_h, self.h_noisy, self.noise_jac = {}, {}, {}, {}
         for name, meas in model.measurements.items():
-            q = ca.SX.sym("q", meas.q.shape[0])
-            z = measurement_function(model, name)(t, chart.retract_linear(x, delta), u, p, q)   # h inlined
-            H = ca.substitute(ca.jacobian(z, delta), delta, zero)
-            self.jac_h[name] = ca.Function(f"{prefix}_manifold_jac_h_{name}", [t, x, u, p, q], [H],
-                                           ["t", "x", "u", "p", "q"], ["H"], _CALLED)
-            self.h[name] = fns.h[name]
+            self._measurement(model, name, meas, t, x, u, p, delta, zero)
+
+    def _noisy_step(self, model: Model, fns: ModelFunctions) -> ca.Function | None:
+        """f_d(t, dt, x, u, p, w) with the noises held over the step (exact step or RK4), or None."""
+        if self.options.step == "exact":
+            made = exact_step_function(model)
+        elif self.options.noise == "held":
+            made = discrete_dynamics(model, fns.config.rk4_substeps, "rk4", bool(fns.config.get("split_events", True)))
+        else:
+            return None
+        return ca.Function(f"{model.name}_manifold_fd_noisy", made.sx_in(), made.call(made.sx_in()),
+                           ["t", "dt", "x", "u", "p", "w"], ["x"], _CALLED)
+
+    def _measurement(self, model, name, meas, t, x, u, p, delta, zero):
+        q = ca.SX.sym("q", meas.q.shape[0])
+        h, inline = self.fns.h[name], measurement_function(model, name)
+        z_hat = inline(t, x, u, p, q)
+        # first-order chart (same H, fewer operations), h inlined (CasADi differentiates its expressions)
+        z = inline(t, self.chart.retract_linear(x, delta), u, p, q)
+        r = self.chart.quaternion_local_linear(z, z_hat) if meas.quaternion else z
+        H = ca.substitute(ca.jacobian(r, delta), delta, zero)
+        self.jac_h[name] = ca.Function(f"{model.name}_manifold_jac_h_{name}", [t, x, u, p, q], [H],
+                                       ["t", "x", "u", "p", "q"], ["H"], _CALLED)
+        self.h[name] = h
+        if meas.v.shape[0]:
+            v = ca.SX.sym("v", meas.v.shape[0])
+            noisy = noisy_measurement_function(model, name)
+            self.h_noisy[name] = ca.Function(f"{model.name}_h_{name}_noisy", [t, x, u, p, q, v],
+                                             [noisy(t, x, u, p, q, v)], ["t", "x", "u", "p", "q", "v"], ["z"], _CALLED)
+            z_v = noisy(t, x, u, p, q, v)
+            r_v = self.chart.quaternion_local_linear(z_v, z_hat) if meas.quaternion else z_v
+            D = ca.substitute(ca.jacobian(r_v, v), v,
+                              ca.DM.zeros(v.shape[0]))
+            self.noise_jac[name] = ca.Function(f"{model.name}_manifold_noise_jac_{name}", [t, x, u, p, q],
+                                               [ca.densify(D)], ["t", "x", "u", "p", "q"], ["D"], _INLINE)
+
+    def residual(self, name: str, z, z_ref) -> ca.SX:
+        """z ⊟ z_ref of a measurement: in the chart for a quaternion measurement, z - z_ref otherwise."""
+        meas = self.model.measurements[name]
+        return self.chart.quaternion_local(z, z_ref) if meas.quaternion else z - z_ref
+
+    def measurement_noise(self, name: str, R, t, x, u, p, q) -> ca.SX:
+        """R in innovation coordinates: D R Dᵀ for a measurement with its own noise v, else R."""
+        return self.noise_jac[name](t, x, u, p, q) @ R @ self.noise_jac[name](t, x, u, p, q).T \
+            if name in self.noise_jac else R
 
     def mean(self, points: list[ca.SX], weights: list) -> ca.SX:
         """Weighted mean of sigma points on the manifold: eigenvector mean per quaternion (sign of
@@ -171,6 +317,14 @@ class ManifoldFunctions:
               for i, _ in chart.quaternions]
         linear = sum((wi * pt for wi, pt in zip(weights, points)), ca.SX.zeros(chart.n))
         return chart._assemble(chart.n, qs, [(i, linear[i]) for i, _ in chart.ordinary])
+
+    def measurement_mean(self, name: str, points: list[ca.SX], weights: list) -> ca.SX:
+        """Mean of predicted measurements: eigenvector mean of a quaternion measurement, else the
+        weighted mean (angles on the circle)."""
+        meas = self.model.measurements[name]
+        if meas.quaternion:
+            return quaternion_mean(ca.horzcat(*points), ca.vertcat(*weights), points[0])
+        return _weighted_mean(points, weights, meas.wrap)
 
 
 # ---------------------------------------------------------------------- shared pieces
@@ -210,46 +364,83 @@ def _error_names(model: Model) -> list[str]:
 
 
 def error_process_noise(model: Model, mf: ManifoldFunctions, symbols: Symbols, Q, x, t, dt):
-    """Q_d in error coordinates: Q dt (additive), or G Q Gᵀ dt with G = ∂(x ⊟ x̂)/∂x · ∂f/∂w."""
+    """Q_d in error coordinates: Q dt (additive), G Q Gᵀ dt with G = ∂(x ⊟ x̂)/∂x · ∂f/∂w (continuous),
+    or G_d (Q/dt) G_dᵀ (held; dt <= 0 is refused by :func:`predict_status`)."""
+    s = symbols.sym
+    if mf.options.noise == "held":
+        G = mf.held_noise_gain(t, dt, x, s["u"], s["p"])
+        return G @ (Q / linalg.guarded(dt, dt > 0)) @ G.T
     if mf.fns.noise_gain is None:
         return Q * dt
-    s = symbols.sym
     G = mf.local_jacobian(x) @ mf.fns.noise_gain(t, x, s["u"], s["p"])
     return G @ Q @ G.T * dt
 
 
-def predict_status(chart: Chart, symbols: Symbols, P, Q, ok, extra=()):
-    """NONFINITE for a NaN/Inf input, else DOMAIN for a non-unit quaternion, else NOT_PD unless ok."""
+def predict_status(mf: ManifoldFunctions, symbols: Symbols, P, Q, ok, extra=(), in_domain=1):
+    """NONFINITE for a NaN/Inf input, else DOMAIN for a non-unit quaternion, dt <= 0 with held
+    noise or not ``in_domain`` (a sigma point outside the chart), else NOT_PD unless ok."""
     s = symbols.sym
     finite = all_finite([s["t"], s["dt"], s["x"], P, s["u"], s["p"], Q, *extra])
-    status = linalg.select(chart.unit_norm(s["x"]), linalg.select(ok, 0, STATUS_NOT_PD), STATUS_DOMAIN)
+    domain = mf.chart.unit_norm(s["x"]) * ((s["dt"] > 0) if mf.options.noise == "held" else 1) * in_domain
+    status = linalg.select(domain, linalg.select(ok, 0, STATUS_NOT_PD), STATUS_DOMAIN)
     return linalg.select(finite, status, STATUS_NONFINITE)
 
 
-def predict_kernel(name: str, doc: str, ms: ManifoldSymbols, chart: Chart, x_pred, P_pred, ok, inputs, extra=()):
+def predict_kernel(name: str, doc: str, ms: ManifoldSymbols, mf: ManifoldFunctions, x_pred, P_pred, ok, inputs,
+                   extra=(), extra_sym=None, extra_arg=None, in_domain=1):
     s = ms.base.sym
-    status = predict_status(chart, ms.base, ms.sym["P"], ms.sym["Q"], ok, extra)
-    return make_kernel(name, doc, ms.base, ms.sym, ms.arg, inputs,
+    status = predict_status(mf, ms.base, ms.sym["P"], ms.sym["Q"], ok, extra, in_domain)
+    return make_kernel(name, doc, ms.base, {**ms.sym, **(extra_sym or {})}, {**ms.arg, **(extra_arg or {})}, inputs,
                        [("x", linalg.select(status == 0, x_pred, s["x"])),
                         ("P", linalg.select(status == 0, P_pred, ms.sym["P"])), ("status", status)])
 
 
-def inputs_finite(ms: ManifoldSymbols, msym: dict, extra=()) -> ca.SX:
-    """Every input of an update is finite (z only where the mask uses it)."""
-    s = ms.base.sym
-    return all_finite([s["x"], ms.sym["P"], s["u"], s["p"], msym["q"], msym["mask"], msym["R"], msym["gate"],
-                       *extra]) * masked_finite(msym["z"], msym["mask"])
+@dataclass
+class MeasurementInput:
+    """One update's measurement as the algebra uses it: z (a quaternion normalised), the mask per
+    innovation component, and the flags of the bad-input rules."""
+
+    z: ca.SX
+    mask: ca.SX          # per innovation component (a quaternion's one entry repeated 3 times)
+    finite: ca.SX        # every input finite (z only where used)
+    unit: ca.SX          # a used quaternion measurement has | |z| - 1 | <= MEASUREMENT_NORM_TOLERANCE
 
 
-def update_outputs(chart: Chart, update, x_old, P_old, msym):
+def measurement_input(model: Model, ms: ManifoldSymbols, name: str, msym: dict, extra=()) -> MeasurementInput:
+    s, meas = ms.base.sym, model.measurements[name]
+    mask, z = msym["mask"], msym["z"]
+    finite_rest = all_finite([s["x"], ms.sym["P"], s["u"], s["p"], msym["q"], mask, msym["R"], msym["gate"], *extra])
+    if not meas.quaternion:
+        return MeasurementInput(z, mask, finite_rest * masked_finite(z, mask), ca.SX(1))
+    use = mask[0] > 0.5
+    z_used = linalg.select(use, z, ca.DM([0, 0, 0, 1]))          # a masked NaN enters no arithmetic
+    norm = ca.norm_2(z_used)
+    unit = (ca.fabs(norm - 1) <= MEASUREMENT_NORM_TOLERANCE)
+    finite = finite_rest * masked_finite(z, ca.repmat(mask, 4, 1))
+    return MeasurementInput(z_used / ca.fmax(norm, linalg.TINY), ca.repmat(mask, 3, 1), finite, unit)
+
+
+def chart_innovation(mf: ManifoldFunctions, name: str, m: MeasurementInput, z_pred, wrap) -> ca.SX:
+    """The innovation z ⊟ ẑ, masked components 0 (angles wrapped)."""
+    if mf.model.measurements[name].quaternion:
+        return m.mask * mf.residual(name, m.z, z_pred)
+    return innovation(m.z, z_pred, m.mask, wrap)
+
+
+def update_outputs(chart: Chart, update, x_old, P_old, msym, m: MeasurementInput | None = None):
     """x, P (unchanged unless the update succeeded and passed the gate), y, S, status; a non-unit
-    input quaternion is SYMKF_ERR_DOMAIN (after NONFINITE)."""
-    x_new, P_new, y, S, ok, nis, finite = update
-    unit = chart.unit_norm(x_old)
-    is_gated = gated(msym["gate"], msym["mask"], nis)
-    keep = ok * (1 - is_gated) * finite * unit
+    input quaternion, a non-unit quaternion measurement or a correction outside the chart is
+    SYMKF_ERR_DOMAIN (after NONFINITE)."""
+    x_new, P_new, y, S, ok, nis, finite = update[:7]
+    in_domain = update[7] if len(update) > 7 else ca.SX(1)
+    mask = msym["mask"] if m is None else m.mask
+    unit = chart.unit_norm(x_old) * (1 if m is None else m.unit)
+    is_gated = gated(msym["gate"], mask, nis)
+    used = ca.sum1(mask) > 0
+    domain = unit * (1 - used * (1 - in_domain))
+    keep = ok * (1 - is_gated) * finite * domain
     status = update_status(ok, is_gated, finite)
-    status = linalg.select(finite * (1 - unit), STATUS_DOMAIN, status)
+    status = linalg.select(finite * (1 - domain), STATUS_DOMAIN, status)
     x_out, P_out = (linalg.select(keep, new, old) for new, old in ((x_new, x_old), (P_new, P_old)))
     return [("x", x_out), ("P", P_out), ("y", y), ("S", S), ("status", status)]
 
@@ -258,11 +449,11 @@ def update_outputs(chart: Chart, update, x_old, P_old, msym):
 def mekf_update_expr(mf: ManifoldFunctions, ms: ManifoldSymbols, name: str, msym: dict, wrap):
     s, P = ms.base.sym, ms.sym["P"]
     t, x = s["t"], s["x"]
-    mask = msym["mask"]
+    m = measurement_input(mf.model, ms, name, msym)
     z_pred = mf.h[name](t, x, s["u"], s["p"], msym["q"])
-    H = ca.diag(mask) @ mf.jac_h[name](t, x, s["u"], s["p"], msym["q"])
-    R = masked_noise(msym["R"], mask)
-    y = innovation(msym["z"], z_pred, mask, wrap)
+    H = ca.diag(m.mask) @ mf.jac_h[name](t, x, s["u"], s["p"], msym["q"])
+    R = masked_noise(mf.measurement_noise(name, msym["R"], t, x, s["u"], s["p"], msym["q"]), m.mask)
+    y = chart_innovation(mf, name, m, z_pred, wrap)
     HP = H @ P                                       # sparse H: structural zeros cost nothing
     HPH = linalg.sandwich(H, P)
     S = linalg.symmetric(R.shape[0], lambda i, j: HPH[i, j] + linalg.symmetric_part(R, i, j))
@@ -270,12 +461,12 @@ def mekf_update_expr(mf: ManifoldFunctions, ms: ManifoldSymbols, name: str, msym
     # With U = L⁻¹ H P: K = Uᵀ L⁻¹, K y = Uᵀ L⁻¹ y and K S Kᵀ = Uᵀ U (as the Kalman EKF and UKF)
     U = linalg.solve_lower(L, HP)
     white = linalg.solve_lower(L, y)
-    x_new = mf.retract(x, U.T @ white)               # multiplicative reset
+    correction = U.T @ white
+    x_new = mf.retract(x, correction)               # multiplicative reset
     UtU = linalg.gram(U)
     P_new = linalg.symmetric(P.shape[0], lambda i, j: linalg.symmetric_part(P, i, j) - UtU[i, j])
     nis = ca.sumsqr(white)
-    finite = inputs_finite(ms, msym)
-    return x_new, P_new, y, S, ok * linalg.psd_flag(P), nis, finite
+    return (x_new, P_new, y, S, ok * linalg.psd_flag(P), nis, m.finite, mf.chart.in_domain(correction)), m
 
 
 def mekf_kernels(model: Model, symbols: Symbols, fns: ModelFunctions) -> Family:
@@ -285,20 +476,24 @@ def mekf_kernels(model: Model, symbols: Symbols, fns: ModelFunctions) -> Family:
     x_pred, F = mf.step_and_jac(s["t"], s["dt"], s["x"], s["u"], s["p"])
     FPF, Qd = linalg.sandwich(F, P), error_process_noise(model, mf, symbols, Q, s["x"], s["t"], s["dt"])
     P_pred = linalg.symmetric(P.shape[0], lambda i, j: FPF[i, j] + linalg.symmetric_part(Qd, i, j))
-    doc = _predict_doc(model, "Multiplicative EKF", "RK4 then |q| = 1; P = F P F^T + Q_d, F = d(f_d(x (+) d) (-) "
-                       "f_d(x))/dd in error coordinates")
-    predict = predict_kernel("mekf_predict", doc, ms, mf.chart, x_pred, P_pred, linalg.psd_flag(P),
+    doc = _predict_doc(model, "Multiplicative EKF", f"{_step_words(mf)} then |q| = 1; P = F P F^T + Q_d, "
+                       "F = d(f_d(x (+) d) (-) f_d(x))/dd in error coordinates")
+    predict = predict_kernel("mekf_predict", doc, ms, mf, x_pred, P_pred, linalg.psd_flag(P),
                              ["t", "dt", "x", "P", "u", "p", "Q"])
     kernels = [predict]
     for name, meas in model.measurements.items():
         msym, marg = ms.measurement(name)
-        upd = mekf_update_expr(mf, ms, name, msym, meas.wrap)
+        upd, m = mekf_update_expr(mf, ms, name, msym, meas.wrap)
         kernels.append(make_kernel(
             f"mekf_update_{name}", f"Multiplicative EKF update with '{name}': H = dh(x (+) d)/dd, P - K S K^T, "
             "reset x = x (+) K y (masked, gated).", symbols, msym, marg, UPDATE_INPUTS,
-            update_outputs(mf.chart, upd, s["x"], P, msym)))
+            update_outputs(mf.chart, upd, s["x"], P, msym, m)))
         kernels.append(compose_step(f"mekf_step_{name}", predict, kernels[-1]))
     return Family(kernels, [filter_spec("mekf", "manifold_ekf", kernels, model.measurements)])
+
+
+def _step_words(mf: ManifoldFunctions) -> str:
+    return "the model's exact step" if mf.options.step == "exact" else "RK4"
 
 
 # ---------------------------------------------------------------------- manifold UKF
@@ -310,47 +505,52 @@ def mukf_predict_expr(model: Model, mf: ManifoldFunctions, ms: ManifoldSymbols):
     residuals = [mf.local(pt, x_mean) for pt in propagated]
     P_pred = sum((w * r @ r.T for w, r in zip(weights, residuals)), ca.SX.zeros(P.shape)) + \
         error_process_noise(model, mf, ms.base, ms.sym["Q"], s["x"], s["t"], s["dt"])
-    return x_mean, linalg.symmetrize(P_pred), ok
+    return x_mean, linalg.symmetrize(P_pred), ok, mf.chart.in_domain_all(offsets)
 
 
 def mukf_update_expr(mf: ManifoldFunctions, ms: ManifoldSymbols, name: str, msym: dict, wrap):
     s, P = ms.base.sym, ms.sym["P"]
-    t, x, mask = s["t"], s["x"], msym["mask"]
+    t, x = s["t"], s["x"]
+    m = measurement_input(mf.model, ms, name, msym, [s["kappa"]])
     offsets, weights, ok = sigma_points(ca.SX.zeros(P.shape[0]), P, s["kappa"])
     predicted = [mf.h[name](t, mf.retract(x, d), s["u"], s["p"], msym["q"]) for d in offsets]
-    z_pred = _weighted_mean(predicted, weights, wrap)
-    dz = [mask * _angle_difference(zi, z_pred, wrap) for zi in predicted]
-    R = masked_noise(msym["R"], mask)
+    z_pred = mf.measurement_mean(name, predicted, weights)
+    if mf.model.measurements[name].quaternion:
+        dz = [m.mask * mf.residual(name, zi, z_pred) for zi in predicted]
+    else:
+        dz = [m.mask * _angle_difference(zi, z_pred, wrap) for zi in predicted]
+    R = masked_noise(mf.measurement_noise(name, msym["R"], t, x, s["u"], s["p"], msym["q"]), m.mask)
     S = linalg.symmetrize(sum((w * d @ d.T for w, d in zip(weights, dz)), ca.SX.zeros(R.shape)) + R)
     Pxz = sum((w * a @ b.T for w, a, b in zip(weights, offsets, dz)), ca.SX.zeros(P.shape[0], R.shape[0]))
     L, ok_s = linalg.cholesky(S)
     U = linalg.solve_lower(L, Pxz.T)                 # K y = Uᵀ L⁻¹ y, K S Kᵀ = Uᵀ U
-    y = innovation(msym["z"], z_pred, mask, wrap)
-    x_new = mf.retract(x, U.T @ linalg.solve_lower(L, y))
+    y = chart_innovation(mf, name, m, z_pred, wrap)
+    correction = U.T @ linalg.solve_lower(L, y)
+    x_new = mf.retract(x, correction)
     P_new = linalg.symmetrize(P - U.T @ U)
     nis = ca.sumsqr(linalg.solve_lower(L, y))
-    finite = inputs_finite(ms, msym, [s["kappa"]])
-    return x_new, P_new, y, S, ok * ok_s, nis, finite
+    in_domain = mf.chart.in_domain(correction) * mf.chart.in_domain_all(offsets)
+    return (x_new, P_new, y, S, ok * ok_s, nis, m.finite, in_domain), m
 
 
 def mukf_kernels(model: Model, symbols: Symbols, fns: ModelFunctions) -> Family:
     _require_quaternion(model, "mukf")
     mf, ms = ManifoldFunctions(model, fns), ManifoldSymbols(model, symbols)
     s = symbols.sym
-    x_pred, P_pred, ok = mukf_predict_expr(model, mf, ms)
+    x_pred, P_pred, ok, in_domain = mukf_predict_expr(model, mf, ms)
     ok = ok * (s["kappa"] + model.n_error > 0)
     doc = _predict_doc(model, "Manifold UKF", f"{2 * model.n_error + 1} sigma points x (+) d_i, quaternion "
                        "eigenvector mean, residuals in error coordinates")
-    predict = predict_kernel("mukf_predict", doc, ms, mf.chart, x_pred, P_pred, ok,
-                             ["t", "dt", "x", "P", "u", "p", "Q", "kappa"], [s["kappa"]])
+    predict = predict_kernel("mukf_predict", doc, ms, mf, x_pred, P_pred, ok,
+                             ["t", "dt", "x", "P", "u", "p", "Q", "kappa"], [s["kappa"]], in_domain=in_domain)
     kernels = [predict]
     for name, meas in model.measurements.items():
         msym, marg = ms.measurement(name)
-        upd = mukf_update_expr(mf, ms, name, msym, meas.wrap)
+        upd, m = mukf_update_expr(mf, ms, name, msym, meas.wrap)
         kernels.append(make_kernel(
             f"mukf_update_{name}", f"Manifold UKF update with '{name}': sigma points x (+) d_i redrawn, correction "
             "by the retraction (masked, gated).", symbols, msym, marg, UPDATE_INPUTS + ["kappa"],
-            update_outputs(mf.chart, upd, s["x"], ms.sym["P"], msym)))
+            update_outputs(mf.chart, upd, s["x"], ms.sym["P"], msym, m)))
         kernels.append(compose_step(f"mukf_step_{name}", predict, kernels[-1]))
     return Family(kernels, [filter_spec("mukf", "manifold_ukf", kernels, model.measurements,
                                         defaults={"kappa": DEFAULT_KAPPA})])

@@ -16,16 +16,28 @@ import time
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from symkf.codegen.families import quaternion_filters as family
+from symkf.models import get_model
 from symkf.runtime import load
 from symkf.runtime.attitude import AttitudeFilter, ReferenceAttitudeFilter
 
 KINDS = ("mekf", "ukf", "aukf")
+
+
+def sigma_point_counts(model_name: str = "attitude") -> dict[str, int]:
+    """Sigma points of the separated ([x, w], [x, v]) and augmented ([x, w, v]) UKFs of a model:
+    2 n + 1 with n the error-state plus noise dimensions (25, 19 and 31 for paper 000)."""
+    model = get_model(model_name)
+    n_e, n_w = model.n_error, len(model.noises)
+    n_v = max(m.v.shape[0] for m in model.measurements.values())
+    return {"propagation": 2 * (n_e + n_w) + 1, "update": 2 * (n_e + n_v) + 1, "augmented": 2 * (n_e + n_w + n_v) + 1}
+
+
+_COUNTS = sigma_point_counts()
 SIGMA_POINTS = {
     "mekf": {"propagation": 0, "update": 0, "cholesky": "none (3x3 solve of S)"},
-    "ukf": {"propagation": family.N_PROPAGATION_POINTS, "update": family.N_UPDATE_POINTS,
+    "ukf": {"propagation": _COUNTS["propagation"], "update": _COUNTS["update"],
             "cholesky": "6x6 P + 6x6 Q (propagation), 6x6 P + 3x3 R + 3x3 P^yy (update)"},
-    "aukf": {"propagation": family.N_AUGMENTED_POINTS, "update": family.N_AUGMENTED_POINTS,
+    "aukf": {"propagation": _COUNTS["augmented"], "update": _COUNTS["augmented"],
              "cholesky": "15x15 blockdiag(P, Q, R) + 3x3 P^yy, once per step"},
 }
 

@@ -49,7 +49,6 @@ import casadi as ca
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from symkf.codegen.families.quaternion_filters import AttitudeFunctions
 from symkf.models import attitude as att
 from symkf.runtime.attitude import DEFAULT_KAPPA, AttitudeFilter
 from symkf.scenarios.campaign import (ModelKey, ProgressBar, Task, add_scheduler_arguments, compiled_model, model_key,
@@ -106,16 +105,15 @@ class TruthSimulator:
     def __init__(self, duration: float):
         self.n_steps = int(round(duration / GYRO_PERIOD))
         self.n_fine = self.n_steps * TRUTH_SUBSTEPS
-        fns = AttitudeFunctions("attitude_truth")
         x, inputs, dt = ca.SX.sym("x", 7), ca.SX.sym("w", 6), ca.SX.sym("dt")
         omega_true, eta_b = inputs[0:3], inputs[3:6]
         # ω_g := ω_true - b makes the model's body rate (28) exactly the true rate
-        q_next, b_next = fns.propagate(x[0:4], x[4:7], att.gyro_output(omega_true, x[4:7], 0), ca.SX.zeros(3),
+        q_next, b_next = att.propagate(x[0:4], x[4:7], att.gyro_output(omega_true, x[4:7], 0), ca.SX.zeros(3),
                                        eta_b, dt)
         step = ca.Function("truth_step", [x, inputs, dt], [ca.vertcat(q_next, b_next)])
         self.truth = step.mapaccum("truth", self.n_fine)
         q, eta_s = ca.SX.sym("q", 4), ca.SX.sym("eta_s", 3)
-        self.star_tracker = ca.Function("star", [q, eta_s], [fns.star_tracker(q, eta_s)]).map(self.n_steps)
+        self.star_tracker = ca.Function("star", [q, eta_s], [att.star_tracker(q, eta_s)]).map(self.n_steps)
 
     def simulate(self, rng: np.random.Generator, bias0: np.ndarray, star_period: float) -> Record:
         h = GYRO_PERIOD / TRUTH_SUBSTEPS

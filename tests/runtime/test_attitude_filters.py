@@ -5,12 +5,14 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from symkf.codegen.discretize import discrete_dynamics
-from symkf.codegen.families import quaternion_filters as family
 from symkf.codegen.spec import STATUS_DOMAIN
 from symkf.models import attitude as att
 from symkf.models import get_model
 from symkf.runtime import SymkfError, load
 from symkf.runtime.attitude import AttitudeFilter, ReferenceAttitudeFilter, eigen_mean
+from symkf.runtime.reference import _Functions
+
+N_PROPAGATION_POINTS = 25       # 2 (6 + 6) + 1: the separated UKF's [x, w] set, the size of the mean kernel
 
 P0 = 0.01 * np.eye(6)      # section V, scenario I
 
@@ -22,7 +24,7 @@ def compiled():
 
 @pytest.fixture(scope="module")
 def functions():
-    return family.AttitudeFunctions("attitude_test")
+    return _Functions.get()        # the paper's equations (models/attitude.py) as CasADi Functions
 
 
 def initial_quaternion(seed=2, error_deg=10.0):
@@ -47,7 +49,8 @@ def test_table1_values():
     assert att.GYRO_ANGLE_RANDOM_WALK == 4.36e-5 and att.GYRO_RATE_RANDOM_WALK == 2.01e-7
     assert np.allclose(np.diag(att.process_noise_psd()), [4.36e-5 ** 2] * 3 + [2.01e-7 ** 2] * 3)
     model = get_model("attitude")
-    assert model.state_names() == list(att.STATE_NAMES) and model.filters == ("attitude",)
+    assert model.state_names() == list(att.STATE_NAMES) and model.filters == ("mekf", "sukf", "aukf")
+    assert [qs.name for qs in model.quaternions] == ["q"] and model.n_error == 6
 
 
 def test_closed_form_propagation_equals_integrated_kinematics(functions):
@@ -80,7 +83,7 @@ def test_star_tracker_model_matches_scipy(functions):
 
 # ---------------------------------------------------------------------- eigen mean
 def _mean_kernel(compiled):
-    n = family.N_PROPAGATION_POINTS
+    n = N_PROPAGATION_POINTS
     buffers = {"quaternions": np.zeros((4, n), order="F"), "weights": np.zeros(n), "q_ref": np.zeros(4),
                "q": np.zeros(4)}
     return buffers, compiled.backend.bind(f"quaternion_mean_{n}", buffers)
@@ -91,7 +94,7 @@ def _mean_kernel(compiled):
 def test_eigen_mean_equals_eigh(compiled, spread, weighting):
     """The C mean (no LAPACK, fixed iterations) equals numpy.linalg.eigh's eigenvector to 1e-12."""
     buffers, call = _mean_kernel(compiled)
-    n = family.N_PROPAGATION_POINTS
+    n = N_PROPAGATION_POINTS
     rng = np.random.default_rng(int(spread * 1e6) + len(weighting))
     for trial in range(20):
         center = Rotation.random(random_state=rng.integers(1e6))
