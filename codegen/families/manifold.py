@@ -17,6 +17,18 @@ therefore a *body-frame* (right) perturbation — Solà, "Quaternion kinematics 
 Kalman filter" (2017), eq (177) local error; Markley, "Attitude error representations for
 Kalman filtering", JGCD 26(2) 2003, with the rotation vector as the error parametrisation.
 
+**Options** (:class:`ManifoldOptions`, codegen config ``manifold_chart/_side/_step/_noise``, a
+model's own in ``Model.codegen_defaults``): the error may instead be the vector part δp of
+δq = [δp; √(1 - |δp|²)] (paper 000 eqs (34), (41), (52); half-angle units; |δp| >= 1 is
+SYMKF_ERR_DOMAIN), on the left (δq ⊗ q̂, reference frame) instead of the right; the step may be
+the model's exact one (``Model.set_discrete_step``) instead of RK4; the process noise may be
+*held* over the step inside that step (Q_d = G_d (Q/dt) G_dᵀ, paper 000 eq (29)). A quaternion
+measurement (``Model.measurement(..., quaternion=True)``) has its innovation z ⊟ ẑ in the same
+chart; a measurement with its own noise v (``Model.measurement_noise``) has R = cov(v), entering
+as D R Dᵀ with D = ∂(h(x̂, v) ⊟ h(x̂, 0))/∂v. ``models/attitude.py`` sets paper 000's options;
+its separated-noise and augmented UKFs are the families "sukf" and "aukf" of
+``quaternion_filters.py``, on these same primitives.
+
 **Prediction.** The mean is the model's RK4 step f_d (``codegen/discretize.py``) followed by a
 projection of every quaternion onto the unit sphere (q / |q|). MEKF: P⁻ = F P Fᵀ + Q_d with
 F = ∂/∂δ [f_d(x̂ ⊞ δ) ⊟ f_d(x̂)] at δ = 0, derived by CasADi through the retraction. Process
