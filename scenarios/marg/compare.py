@@ -315,7 +315,14 @@ def run_trials(args) -> int:
         print(f"symkf compare marg: {missing} have no optical reference")
         return 1
     madgwick, mekf = load("marg"), load("marg_ekf")
-    rows = [trial_row(madgwick, mekf, recording, args) for recording in recordings]
+    rows = []
+    for recording in recordings:
+        try:
+            rows.append(trial_row(madgwick, mekf, recording, args))
+        except ValueError as exc:          # e.g. NaN IMU samples, or no movement phase to score
+            detail = str(exc).removeprefix(f"{recording.name}: ")
+            print(f"symkf compare marg: trial {recording.name}: {detail}")
+            return 1
     summary = {"data": str(args.data), "trials": [str(p) for p in paths], "form": args.form, "rows": rows,
                "mean_total_rmse_deg": {f: float(np.mean([r[f]["total"] for r in rows])) for f in FILTERS},
                "metric": "BROAD RMSE over movement phases, deg (../shared/data/README.md)",

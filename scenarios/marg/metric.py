@@ -88,6 +88,9 @@ def broad_errors(q_est: np.ndarray, recording: Recording, frame: str = "nwu") ->
         raise ValueError(f"frame: expected 'nwu' or 'enu', got {frame!r}")
     angles = broad_error_angles(to_enu(q_est) if frame == "nwu" else q_est, recording.reference)
     used = recording.movement & np.isfinite(recording.reference).all(axis=1)
+    if not used.any():
+        raise ValueError(f"{recording.name}: no sample with movement == 1 and a finite optical reference; "
+                         "the BROAD metric averages over those")
     rmse = np.degrees(np.sqrt(np.mean(angles[used] ** 2, axis=0)))
     return {"total": float(rmse[0]), "heading": float(rmse[1]), "inclination": float(rmse[2]),
             "samples": int(used.sum())}

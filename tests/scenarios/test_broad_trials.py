@@ -93,3 +93,20 @@ def test_mekf_one_parameter_set_beats_vqf_mean_and_madgwick_best_beta():
         totals[key] = broad_errors(result.q, recording, frame="enu")["total"]
     assert all(totals[key] < MADGWICK_BEST_DEG[key] for key in TRIALS), totals
     assert np.mean(list(totals.values())) <= VQF_MEAN_DEG, totals
+
+
+@needs_broad
+@pytest.mark.parametrize("defect, message", [("nan", "mag: NaN/Inf at samples"), ("still", "no sample with movement")])
+def test_compare_names_a_defective_trial_instead_of_a_traceback(tmp_path, capsys, defect, message):
+    """NaN magnetometer samples, or a cut with no movement phase to score: exit code 1, one line."""
+    folder, n = tmp_path / "trials", 2000 if defect == "still" else 12000     # trial 07 rests for 25 s
+    folder.mkdir()
+    with h5py.File(TRIAL_07.with_suffix(".hdf5"), "r") as source, h5py.File(folder / "07_bad.hdf5", "w") as cut:
+        for name in ("imu_gyr", "imu_acc", "imu_mag", "opt_quat", "movement"):
+            cut[name] = source[name][:n]
+        if defect == "nan":
+            cut["imu_mag"][9000:9010] = np.nan
+        cut.attrs["sampling_rate"] = source.attrs["sampling_rate"]
+    assert main(["compare", "marg", "--data", str(folder), "--out", str(tmp_path / "out")]) == 1
+    out = capsys.readouterr().out
+    assert "symkf compare marg: trial 07_bad:" in out and message in out
