@@ -441,21 +441,21 @@ def _unit_key(identity: str, directory: Path, file: str, header: str) -> str:
 def _compile_units(directory: Path, cc: str, flags: list[str], sources: list[str],
                    header: str) -> tuple[list[Path], list[str]]:
     """Compile each unit to an object (and its call graph, with the stack flags), reusing cached
-    ones from ``<root>/.objects``; returns the object paths in ``directory`` and the units compiled."""
+    ones from ``<root>/.objects``; returns the object paths in ``directory`` and the units compiled.
+
+    A cache entry ``<key>.o`` (+ ``<key>.ci``) is named by :func:`_unit_key` (what determines the
+    object) and vouched for by ``<key>.sum``, the SHA-256 of its files, written last: an entry
+    whose copied files do not match their sums (damaged, replaced, half written) is recompiled."""
     cache = directory.parent / ".objects"
     cache.mkdir(exist_ok=True)
     identity = json.dumps([compiler_identity(cc), flags])
-    graph = c_writer.STACK_FLAGS.split()[-1] in flags
-    suffixes = (".o", ".ci") if graph else (".o",)
+    suffixes = (".o", ".ci") if c_writer.STACK_FLAGS.split()[-1] in flags else (".o",)
     todo, objects = [], []
     for file in sources:
         obj = directory / (file[:-2] + ".o")
         cached = cache / _unit_key(identity, directory, file, header)
         objects.append(obj)
-        if all(cached.with_suffix(s).is_file() for s in suffixes):
-            for suffix in suffixes:
-                shutil.copyfile(cached.with_suffix(suffix), obj.with_suffix(suffix))
-        else:
+        if not _reuse(cached, obj, suffixes):
             todo.append((cc.split() + flags + ["-c", "-o", obj.name, file], obj, cached,
                          (directory / file).stat().st_size))
     todo = [item[:3] for item in sorted(todo, key=lambda item: -item[3])]      # largest first: shortest wall time
@@ -463,20 +463,43 @@ def _compile_units(directory: Path, cc: str, flags: list[str], sources: list[str
         if returncode != 0:
             raise BuildError(f"compiling {cmd[-1]} failed ({' '.join(cmd)}):\n{stderr[-4000:]}")
     for _, obj, cached in todo:
-        for suffix in suffixes[::-1]:              # the object last: its presence marks a complete entry
-            temporary = cache / f".{cached.name}{suffix}.{secrets.token_hex(4)}"
-            shutil.copyfile(obj.with_suffix(suffix), temporary)
-            os.replace(temporary, cached.with_suffix(suffix))
+        _store(cached, obj, suffixes)
     _prune(cache, keep=400)
     return objects, [cmd[-1] for cmd, _, _ in todo]
 
 
+def _reuse(cached: Path, obj: Path, suffixes: tuple[str, ...]) -> bool:
+    """Copy a cached entry next to the unit if its sums match the copies; False (compile) otherwise."""
+    try:
+        sums = json.loads(cached.with_suffix(".sum").read_text())
+        for suffix in suffixes:
+            shutil.copyfile(cached.with_suffix(suffix), obj.with_suffix(suffix))
+            if sha256_file(obj.with_suffix(suffix)) != sums[suffix]:
+                return False
+        return True
+    except (OSError, ValueError, KeyError, TypeError):
+        return False
+
+
+def _store(cached: Path, obj: Path, suffixes: tuple[str, ...]) -> None:
+    """Add a compiled unit to the cache: its files, then (atomically, last) their sums."""
+    sums = {}
+    for suffix in suffixes:
+        temporary = cached.parent / f".{cached.name}{suffix}.{secrets.token_hex(4)}"
+        shutil.copyfile(obj.with_suffix(suffix), temporary)
+        sums[suffix] = sha256_file(temporary)
+        os.replace(temporary, cached.with_suffix(suffix))
+    temporary = cached.parent / f".{cached.name}.sum.{secrets.token_hex(4)}"
+    temporary.write_text(json.dumps(sums))
+    os.replace(temporary, cached.with_suffix(".sum"))
+
+
 def _prune(cache: Path, keep: int) -> None:
-    """Keep the ``keep`` most recently written cached objects (with their call graphs)."""
-    objects = sorted(cache.glob("*.o"), key=lambda p: p.stat().st_mtime, reverse=True)
-    for path in objects[keep:]:
-        path.unlink(missing_ok=True)
-        path.with_suffix(".ci").unlink(missing_ok=True)
+    """Keep the ``keep`` most recently written cache entries (object, call graph, sums)."""
+    entries = sorted(cache.glob("*.sum"), key=lambda p: p.stat().st_mtime, reverse=True)
+    for path in entries[keep:]:
+        for suffix in (".sum", ".o", ".ci"):
+            path.with_suffix(suffix).unlink(missing_ok=True)
 
 
 #: The compiler runs under a shell that kills its whole process group (cc and its cc1, as, ld)

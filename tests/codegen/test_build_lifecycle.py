@@ -6,6 +6,7 @@ configurations both succeed, killed builds leave no staging folder and no compil
 """
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -247,3 +248,31 @@ def test_library_with_another_hash_is_refused(launcher_compiled):
     manifest = dict(launcher_compiled.backend.manifest, content_hash="0" * 32)
     with pytest.raises(StaleLibraryError, match="rebuild"):
         CompiledBackend(launcher_compiled.backend.library_path, manifest)
+
+
+def test_dynamics_edit_recompiles_only_the_units_holding_the_dynamics(tmp_path, write_model, private_build):
+    """One unit per kernel, objects cached by their text: the measurement kernels' units, and the
+    filter step (which calls its predict and update units), are reused after a dynamics edit."""
+    path = write_model(tmp_path / "tracker.py", drag=0.1)
+    cold = build_model(str(path))
+    assert len(cold.compiled) == len(json.loads(cold.manifest.read_text())["sources"])
+    write_model(path, drag=0.2)
+    edited = build_model(str(path))
+    assert sorted(edited.compiled) == ["tiny_api.c", "tiny_k_ekf_predict.c", "tiny_k_f.c", "tiny_k_fd.c",
+                                       "tiny_k_jac_fd.c"]
+    step = (edited.directory / "tiny_k_ekf_step_gps.c").read_text()
+    assert "SYMKF_INTERNAL int tiny_k_ekf_predict(" in step                          # declared, not copied:
+    assert re.findall(r"^SYMKF_INTERNAL int (\w+)\(.*\{$", step, flags=re.M) == ["tiny_k_ekf_step_gps"]
+    write_model(path, drag=0.1)                                                          # back: all from the cache
+    assert build_model(str(path)).compiled == ()
+
+
+def test_damaged_cached_object_is_recompiled_never_linked(tmp_path, write_model, private_build):
+    path = write_model(tmp_path / "tracker.py")
+    expected = _filter_numbers(load(str(path)))
+    for obj in (private_build / ".objects").glob("*.o"):
+        obj.write_bytes(_flip_byte(obj.read_bytes(), 100))                # every cached object damaged
+    rebuilt = build_model(str(path), force=True)
+    assert len(rebuilt.compiled) == len(json.loads(rebuilt.manifest.read_text())["sources"])
+    np.testing.assert_array_equal(_filter_numbers(load(str(path))), expected)
+    assert build_model(str(path), force=True).compiled == ()             # the cache was repaired
