@@ -130,13 +130,13 @@ _METRICS = {"launcher_20Hz_small": ("r_rms_m", "m"), "attitude_scenario_I": ("at
 
 
 def _print(result: dict) -> None:
-    print(f"{'case':22s} {'filter':10s} {'metric':20s} {'double':>10s} {'float':>10s} {'ratio':>7s} "
-          f"{'refused d/f':>12s}")
+    print(f"{'case':20s} {'filter':9s} {'metric':25s} {'double':>9s} {'float':>9s} {'ratio':>6s} {'refused d/f':>11s}")
     for section, (metric, unit) in _METRICS.items():
         for family, rows in result.get(section, {}).items():
             if family == "skipped":
-                print(f"{section:22s} skipped: {rows}")
+                print(f"{section:20s} skipped: {rows}")
                 continue
             d, f = rows["double"], rows["float"]
-            print(f"{section:22s} {family:10s} {metric + ' (' + unit + ')':20s} {d[metric]:10.4g} {f[metric]:10.4g} "
-                  f"{f[metric] / d[metric]:7.2f} {d['refused_steps']:>5d}/{f['refused_steps']:<6d}")
+            refused = f"{d['refused_steps']}/{f['refused_steps']}"
+            print(f"{section:20s} {family:9s} {metric + ' (' + unit + ')':25s} {d[metric]:9.4g} {f[metric]:9.4g} "
+                  f"{f[metric] / d[metric]:6.2f} {refused:>11s}")

@@ -122,3 +122,49 @@ def test_float_launcher_ekf_flight_within_twice_double(launcher_compiled, launch
         rms[name] = np.sqrt(np.mean(state_error(truth, result.x, C.ANGLE_STATES)[:, 3] ** 2))
     assert rms["double"] < 1.5
     assert rms["float"] < 2 * rms["double"], rms
+
+
+USER_MODEL = '''"""A user's model with a scaled state: a cart far from the origin, position measured."""
+from symkf.models import Model
+
+
+def build():
+    m = Model("far_cart", "a cart 6000 km from the origin", paper="none")
+    pos = m.state("pos", "m", "position", scale=1.0, offset=6.4e6)
+    vel = m.state("vel", "m/s", "velocity", scale=0.01)
+    m.set_dynamics({"pos": vel, "vel": -0.1 * vel})
+    m.measurement("gps", [("pos", "m", "measured position", pos)], sigma=[1.0])
+    m.filters = ("ekf", "ukf")
+    return m
+'''
+
+
+@pytest.mark.parametrize("precision", ["double", "float"])
+def test_user_model_bundle_builds_clean_alone(tmp_path, precision):
+    """A user model's bundle (no paper constants) builds with its own Makefile, strict flags, double
+    and float, and a main.c that includes only the header compiles warning-free."""
+    import shutil
+    import subprocess
+    from symkf.codegen import build_model
+    from symkf.runtime import load
+    path = tmp_path / "far_cart.py"
+    path.write_text(USER_MODEL)
+    result = build_model(path, precision=precision)
+    folder = tmp_path / "flight"
+    folder.mkdir()
+    for name in ("far_cart.c", "far_cart.h", "Makefile"):
+        shutil.copy(result.directory / name, folder / name)
+    header = (folder / "far_cart.h").read_text()
+    assert "Paper constants" not in header and "#define FAR_CART_STATE_OFFSET {6400000.0, 0.0}" in header
+    assert ("#define SYMKF_FLOAT" in header) == (precision == "float")
+    proc = subprocess.run(["make", "-j2", "-C", str(folder), "all", "float"], capture_output=True, text=True)
+    assert proc.returncode == 0 and "warning" not in proc.stderr.lower(), proc.stderr[-3000:]
+    (folder / "main.c").write_text('#include "far_cart.h"\nint main(void) {\n'
+                                   '  static const casadi_real offset[FAR_CART_NX] = FAR_CART_STATE_OFFSET;\n'
+                                   '  return offset[0] > 0 ? 0 : 1;\n}\n')
+    proc = subprocess.run(["cc", "-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic", "-Wdouble-promotion", "-c",
+                           "-o", str(folder / "main.o"), str(folder / "main.c")], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    ekf = load(path, precision=precision).ekf([6.4e6 + 12.5, 3.0], np.diag([4.0, 1.0]), np.diag([1e-4, 1e-4]))
+    ekf.step(0.0, 0.1, [6.4e6 + 13.0])
+    assert abs(ekf.x[0] - (6.4e6 + 12.9)) < 0.2 and ekf.P[0, 0] < 4.0
