@@ -25,7 +25,8 @@ from symkf.models.base import Model
 from . import linalg
 from .discretize import (FUNCTION_OPTIONS, INTEGRATORS, EventBranches, continuous_dynamics, discrete_step, split_times,
                          measurement_function)
-from .spec import STATUS_GATED, STATUS_NONFINITE, STATUS_NOT_PD, Arg, CodegenConfig, Family, FilterSpec, Kernel
+from .spec import (STATUS_GATED, STATUS_NONFINITE, STATUS_NOT_PD, Arg, CodegenConfig, ConfigError, Family, FilterSpec,
+                   Kernel, register_options)
 
 
 class Symbols:
@@ -112,10 +113,10 @@ class Discretisation:
         chosen = cls(**{name: config.get(f"{family}_{name}", getattr(base, name))
                         for name in cls.__dataclass_fields__})
         if chosen.integrator not in INTEGRATORS or chosen.covariance not in COVARIANCE_PROPAGATIONS:
-            raise ValueError(f"{family}: integrator must be one of {INTEGRATORS} and covariance one of "
+            raise ConfigError(f"{family}: integrator must be one of {INTEGRATORS} and covariance one of "
                              f"{COVARIANCE_PROPAGATIONS}; got '{chosen.integrator}', '{chosen.covariance}'")
         if int(chosen.substeps) != chosen.substeps or chosen.substeps < 1:
-            raise ValueError(f"{family}: substeps must be an integer >= 1, got {chosen.substeps}")
+            raise ConfigError(f"{family}: substeps must be an integer >= 1, got {chosen.substeps}")
         return chosen
 
     @property
@@ -467,4 +468,5 @@ def register_family(name: str, builder: FamilyBuilder) -> FamilyBuilder:
     if name in FAMILIES and FAMILIES[name] is not builder:
         raise ValueError(f"filter family '{name}' is registered twice")
     FAMILIES[name] = builder
+    register_options(*(f"{name}_{option}" for option in Discretisation.__dataclass_fields__))
     return builder

@@ -95,6 +95,20 @@ class Kernel:
                 "instructions": f.n_instructions()}
 
 
+class ConfigError(ValueError):
+    """A codegen option that is unknown or has a value its reader does not accept."""
+
+
+#: Codegen options beyond CodegenConfig's fields. Each module that reads one with
+#: ``CodegenConfig.get`` declares it here through :func:`register_options`.
+OPTION_KEYS: set[str] = {"precision", "scaling", "split_events"}
+
+
+def register_options(*keys: str) -> None:
+    """Declare option keys read by a codegen module (so that ``with_overrides`` accepts them)."""
+    OPTION_KEYS.update(keys)
+
+
 @dataclass(frozen=True)
 class CodegenConfig:
     """Settings that change the generated code (all part of the build's content hash).
@@ -109,8 +123,19 @@ class CodegenConfig:
     optimization: str = "-O3 -fno-math-errno"
     extra: tuple[tuple[str, object], ...] = ()
 
+    def __post_init__(self) -> None:
+        if isinstance(self.rk4_substeps, bool) or not isinstance(self.rk4_substeps, int) or self.rk4_substeps < 1:
+            raise ConfigError(f"rk4_substeps: expected an integer >= 1, got {self.rk4_substeps!r}")
+        if not isinstance(self.optimization, str) or not self.optimization.startswith("-O"):
+            raise ConfigError(f"optimization: expected compiler flags starting with -O, got {self.optimization!r}")
+
     def with_overrides(self, **changes) -> "CodegenConfig":
-        """A new config with the given fields changed; this one is left as it is."""
+        """A new config with the given fields changed; this one is left as it is. An option that
+        no part of codegen reads is a :class:`ConfigError` (a misspelt option must not build)."""
+        unknown = sorted(k for k in changes if k not in self.__dataclass_fields__ and k not in OPTION_KEYS)
+        if unknown:
+            known = sorted(set(self.__dataclass_fields__) - {"extra"} | OPTION_KEYS)
+            raise ConfigError(f"unknown codegen option(s) {unknown}; known: {', '.join(known)}")
         known = {k: v for k, v in changes.items() if k in self.__dataclass_fields__}
         extra = dict(self.extra)
         extra.update({k: v for k, v in changes.items() if k not in self.__dataclass_fields__})
@@ -124,7 +149,7 @@ class CodegenConfig:
         """"double" (default) or "float": the build's casadi_real (``precision="float"``)."""
         value = self.get("precision", "double")
         if value not in PRECISIONS:
-            raise ValueError(f"precision: expected one of {list(PRECISIONS)}, got {value!r}")
+            raise ConfigError(f"precision: expected one of {list(PRECISIONS)}, got {value!r}")
         return value
 
     @property
@@ -133,7 +158,7 @@ class CodegenConfig:
         (codegen/scaling.py). Option ``scaling``: default on for float, off for double."""
         value = self.get("scaling", self.precision == "float")
         if not isinstance(value, bool):
-            raise ValueError(f"scaling: expected True or False, got {value!r}")
+            raise ConfigError(f"scaling: expected True or False, got {value!r}")
         return value
 
 

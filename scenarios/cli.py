@@ -21,6 +21,7 @@ import sys
 from pathlib import Path
 
 from symkf.codegen import BuildError, build_model, export_bundle
+from symkf.codegen.spec import ConfigError
 from symkf.models import ModelError
 
 
@@ -78,7 +79,7 @@ def main(argv: list[str] | None = None) -> int:
     if argv and argv[0] in ("compare", "bench"):
         try:
             return _dispatch(argv[0], argv[1:])
-        except (BuildError, ModelError) as exc:
+        except (BuildError, ConfigError, ModelError) as exc:
             print(f"symkf {argv[0]}: {exc}", file=sys.stderr)
             return 1
     parser = argparse.ArgumentParser(prog="symkf", description=__doc__,
@@ -98,7 +99,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         return int(args.handler(args) or 0)
-    except (BuildError, ModelError) as exc:
+    except (BuildError, ConfigError, ModelError) as exc:
         print(f"symkf {args.command}: {exc}", file=sys.stderr)
         return 1
 

@@ -68,7 +68,7 @@ from ..discretize import (FUNCTION_OPTIONS, discrete_dynamics, exact_step_functi
                           noisy_measurement_function)
 from ..kernels import (ModelFunctions, Symbols, all_finite, compose_step, filter_spec, innovation, make_kernel,
                        masked_finite, masked_noise, register_family, update_status, gated)
-from ..spec import STATUS_DOMAIN, STATUS_NONFINITE, STATUS_NOT_PD, Arg, CodegenConfig, Family
+from ..spec import STATUS_DOMAIN, STATUS_NONFINITE, STATUS_NOT_PD, Arg, CodegenConfig, ConfigError, Family, register_options
 from .kalman import UPDATE_INPUTS, _angle_difference, _predict_doc, _weighted_mean, noise_symbols, sigma_points
 from .quaternion_filters import quaternion_mean
 
@@ -117,13 +117,16 @@ class ManifoldOptions:
         chosen = cls(**{k: config.get(f"manifold_{k}", getattr(defaults, k)) for k in cls.CHOICES})
         for key, allowed in cls.CHOICES.items():
             if getattr(chosen, key) not in allowed:
-                raise ValueError(f"model '{model.name}': manifold_{key} must be one of {allowed}, "
+                raise ConfigError(f"model '{model.name}': manifold_{key} must be one of {allowed}, "
                                  f"got {getattr(chosen, key)!r}")
         if chosen.step == "exact" and model.discrete_step is None:
-            raise ValueError(f"model '{model.name}': manifold_step 'exact' needs Model.set_discrete_step()")
+            raise ConfigError(f"model '{model.name}': manifold_step 'exact' needs Model.set_discrete_step()")
         if chosen.noise == "held" and not model.noises:
-            raise ValueError(f"model '{model.name}': manifold_noise 'held' needs process noises (Model.noise())")
+            raise ConfigError(f"model '{model.name}': manifold_noise 'held' needs process noises (Model.noise())")
         return chosen
+
+
+register_options(*(f"manifold_{key}" for key in ManifoldOptions.CHOICES))
 
 
 # ---------------------------------------------------------------------- the chart

@@ -224,6 +224,19 @@ def test_export_bundle_anywhere(tmp_path, write_model, private_build):
     assert proc.returncode == 0, proc.stderr[-2000:]          # the exported units build alone
 
 
+@pytest.mark.parametrize("option, message", [("precision=half", "precision: expected one of"),
+                                             ("rk4_substeps=0", "rk4_substeps: expected an integer >= 1"),
+                                             ("rk4_subteps=2", "unknown codegen option(s) ['rk4_subteps']"),
+                                             ("optimization=fast", "optimization: expected compiler flags")])
+def test_bad_or_misspelt_codegen_option_is_one_line_and_builds_nothing(tmp_path, write_model, private_build,
+                                                                         capsys, option, message):
+    from symkf.scenarios.cli import main
+    assert main(["build", str(write_model(tmp_path / "tracker.py")), "--set", option]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("symkf build: ") and message in err and err.count("\n") == 1
+    assert not private_build.exists() or not any(private_build.iterdir())
+
+
 def test_missing_compiler_falls_back_to_casadi_vm_with_same_numbers(launcher_compiled, tmp_path, monkeypatch):
     monkeypatch.setenv("SYMKF_BUILD_DIR", str(tmp_path / "empty"))
     monkeypatch.setenv("CC", "no-such-compiler-symkf")
