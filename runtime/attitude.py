@@ -97,7 +97,7 @@ class AttitudeFilter(Filter):
         if fast is not None and nan == "raise":
             code = fast(self.t, dt, q_s, None, omega_g)   # None: not a plain call, the Python path decides
             if code == 0:
-                self.t = float(self.t + dt)
+                self.t += float(dt)
                 return code
         omega_g = contract.finite_array("omega_g", omega_g, (3,))
         return self._step(self.MEASUREMENT, self.t, dt, {"z": q_s, "q": None, "mask": None}, omega_g, nan)

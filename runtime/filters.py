@@ -372,7 +372,7 @@ class Filter:
         if fast is not None and nan == "raise":
             code = fast(t, dt, z, q, mask, u)          # None: not a plain call, the Python path decides
             if code == 0 or code == STATUS_GATED:
-                self.t = float(t + dt)
+                self.t = float(t) + float(dt)     # (a numpy scalar + float is slow numpy arithmetic)
                 return code
         name = self._measurement_name(measurement, "step")
         return self._step(name, t, dt, {"z": z, "q": q, "mask": mask}, u, nan)

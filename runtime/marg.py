@@ -110,7 +110,7 @@ class MargFilter(Filter):
         if fast is not None and nan == "raise":
             code = fast(self.t, dt, acc, mag, gyro)    # None: not a plain call, the Python path decides
             if code == 0:
-                self.t = float(self.t + dt)
+                self.t += float(dt)
                 return self.x
         gyro = contract.finite_array("gyro", gyro, (3,))
         self._step(self.mode, None, dt, self._samples(acc, mag), gyro, nan)
