@@ -16,10 +16,16 @@
  * Whatever it does not accept it returns None for, having written nothing: the caller then runs
  * the Python contract (symkf/runtime/contract.py), which accepts or refuses it with a clear error.
  * So this file adds speed, never a rule: every call it accepts, the Python path accepts too and
- * writes the very same values. Only the Python C API is used (no numpy headers).
+ * writes the very same values. Arrays are read through the buffer protocol; with SYMKF_NUMPY
+ * (numpy's headers found at build time) an exact numpy.ndarray is read from its fields instead,
+ * which skips the buffer export numpy builds for every new row view.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
+#ifdef SYMKF_NUMPY
+#define NPY_NO_DEPRECATED_API NPY_1_7_API_VERSION
+#include <numpy/arrayobject.h>
+#endif
 #include <math.h>
 #include <stddef.h>
 #include <string.h>
@@ -71,42 +77,67 @@ static int native_double(const char *format) {
   return format[0] == 'd' && format[1] == '\0';
 }
 
-/* Entry i of a 1-D buffer (strides in bytes, as the buffer protocol gives them). */
-static double entry(const Py_buffer *view, Py_ssize_t i) {
+/* One array argument being read: its first entry, the stride in bytes, and the buffer view held
+   while it is read (held = 0 for an ndarray read from its fields, or None). */
+typedef struct {
+  const char *buf;
+  Py_ssize_t stride;
+  int held;
+  Py_buffer view;
+} Input;
+
+static double entry(const Input *in, Py_ssize_t i) {
   double v;
-  memcpy(&v, (const char *) view->buf + i * view->strides[0], sizeof v);
+  memcpy(&v, in->buf + i * in->stride, sizeof v);
   return v;
 }
 
-static int values_ok(const Py_buffer *view, Py_ssize_t n, int check) {
+static int values_ok(const Input *in, Py_ssize_t n, int check) {
   Py_ssize_t i;
   for (i = 0; i < n; ++i) {
-    double v = entry(view, i);
+    double v = entry(in, i);
     if (check == CHECK_MASK ? v != 0.0 && v != 1.0 : !isfinite(v)) return 0;
   }
   return 1;
 }
 
-/* Phase 1 for one slot: 1 and a held view if `o` fits, 1 without a view for an accepted None,
-   0 if Python must answer. Never writes a buffer. */
-static int accept(const Slot *slot, PyObject *o, Py_buffer *view, int *held) {
-  *held = 0;
-  if (o == Py_None) return slot->if_none != NONE_DECLINE;
-  if (slot->if_none == ABSENT) return 0;
-  if (PyObject_GetBuffer(o, view, PyBUF_STRIDES | PyBUF_FORMAT) != 0) {
+/* 1: `o` is a native float64 1-D array of `size` entries (in->buf, in->stride set); 0: it is not. */
+static int shape_ok(const Slot *slot, PyObject *o, Input *in) {
+#ifdef SYMKF_NUMPY
+  if (PyArray_CheckExact(o)) {
+    PyArrayObject *a = (PyArrayObject *) o;
+    if (PyArray_TYPE(a) != NPY_DOUBLE || !PyArray_ISNOTSWAPPED(a) || PyArray_NDIM(a) != 1 ||
+        PyArray_DIM(a, 0) != slot->size) return 0;
+    in->buf = PyArray_BYTES(a);
+    in->stride = PyArray_STRIDE(a, 0);
+    return 1;
+  }
+#endif
+  if (PyObject_GetBuffer(o, &in->view, PyBUF_STRIDES | PyBUF_FORMAT) != 0) {
     PyErr_Clear();
     return 0;
   }
-  *held = 1;
-  return view->ndim == 1 && view->shape[0] == slot->size && view->itemsize == 8 &&
-         native_double(view->format) && values_ok(view, slot->size, slot->check);
+  in->held = 1;
+  in->buf = (const char *) in->view.buf;
+  in->stride = in->view.ndim == 1 ? in->view.strides[0] : 0;
+  return in->view.ndim == 1 && in->view.shape[0] == slot->size && in->view.itemsize == 8 &&
+         native_double(in->view.format);
 }
 
-static void write_slot(const Slot *slot, PyObject *o, const Py_buffer *view) {
+/* Phase 1 for one slot: 1 if `o` fits (or is an accepted None), 0 if Python must answer.
+   Never writes a buffer. */
+static int accept(const Slot *slot, PyObject *o, Input *in) {
+  in->held = 0;
+  if (o == Py_None) return slot->if_none != NONE_DECLINE;
+  if (slot->if_none == ABSENT) return 0;
+  return shape_ok(slot, o, in) && values_ok(in, slot->size, slot->check);
+}
+
+static void write_slot(const Slot *slot, PyObject *o, const Input *in) {
   Py_ssize_t i;
   if (o != Py_None) {
     double copy[MAX_SIZE];               /* the input may alias the buffer: read all, then write */
-    for (i = 0; i < slot->size; ++i) copy[i] = entry(view, i);
+    for (i = 0; i < slot->size; ++i) copy[i] = entry(in, i);
     memcpy(slot->dst, copy, (size_t) slot->size * sizeof(double));
   } else if (slot->if_none == NONE_ONES || slot->if_none == NONE_ZEROS) {
     for (i = 0; i < slot->size; ++i) slot->dst[i] = slot->if_none == NONE_ONES ? 1.0 : 0.0;
@@ -116,8 +147,7 @@ static void write_slot(const Slot *slot, PyObject *o, const Py_buffer *view) {
 static PyObject *step_call(PyObject *callable, PyObject *const *argv, size_t nargsf, PyObject *kwnames) {
   Step *self = (Step *) callable;
   Py_ssize_t nargs = PyVectorcall_NARGS(nargsf);
-  Py_buffer views[MAX_SLOTS];
-  int held[MAX_SLOTS];
+  Input inputs[MAX_SLOTS];
   int i, fits = 1, code;
   double t, dt;
   if (kwnames != NULL || nargs != 2 + self->n_slots) {
@@ -126,14 +156,14 @@ static PyObject *step_call(PyObject *callable, PyObject *const *argv, size_t nar
     return NULL;
   }
   if (!finite_float(argv[0], &t) || !finite_float(argv[1], &dt) || !(dt > 0.0)) Py_RETURN_NONE;
-  for (i = 0; i < self->n_slots; ++i) held[i] = 0;
-  for (i = 0; i < self->n_slots && fits; ++i) fits = accept(&self->slots[i], argv[2 + i], &views[i], &held[i]);
+  for (i = 0; i < self->n_slots; ++i) inputs[i].held = 0;
+  for (i = 0; i < self->n_slots && fits; ++i) fits = accept(&self->slots[i], argv[2 + i], &inputs[i]);
   if (fits) {
     if (self->t != NULL) *self->t = t;
     if (self->dt != NULL) *self->dt = dt;
-    for (i = 0; i < self->n_slots; ++i) write_slot(&self->slots[i], argv[2 + i], &views[i]);
+    for (i = 0; i < self->n_slots; ++i) write_slot(&self->slots[i], argv[2 + i], &inputs[i]);
   }
-  for (i = 0; i < self->n_slots; ++i) if (held[i]) PyBuffer_Release(&views[i]);
+  for (i = 0; i < self->n_slots; ++i) if (inputs[i].held) PyBuffer_Release(&inputs[i].view);
   if (!fits) Py_RETURN_NONE;
   code = self->kernel(self->args);
   return PyLong_FromLong(code);
@@ -222,6 +252,9 @@ static struct PyModuleDef module = {
 
 PyMODINIT_FUNC PyInit__symkf_fastcall(void) {
   PyObject *m;
+#ifdef SYMKF_NUMPY
+  import_array();
+#endif
   if (PyType_Ready(&StepType) < 0) return NULL;
   m = PyModule_Create(&module);
   if (m == NULL) return NULL;

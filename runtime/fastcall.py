@@ -25,6 +25,8 @@ import sysconfig
 import tempfile
 from pathlib import Path
 
+import numpy
+
 from symkf.codegen.build import (BuildError, _lock, compiler, compiler_identity, private_root, run_compiler,
                                  sha256_file)
 
@@ -54,8 +56,17 @@ def extension():
     return module
 
 
+def _numpy_flags() -> list[str]:
+    """Read exact ndarrays from their fields (numpy's headers, shipped with numpy); else [] and
+    every array goes through the buffer protocol."""
+    include = Path(numpy.get_include())
+    if not (include / "numpy" / "arrayobject.h").is_file():
+        return []
+    return ["-DSYMKF_NUMPY", f"-I{include}", f"-DSYMKF_NUMPY_VERSION={numpy.__version__}"]
+
+
 def _key(cc: str, include: str) -> str:
-    text = "\n".join([SOURCE.read_text(), compiler_identity(cc), " ".join(FLAGS), include,
+    text = "\n".join([SOURCE.read_text(), compiler_identity(cc), " ".join(FLAGS + tuple(_numpy_flags())), include,
                       sysconfig.get_config_var("EXT_SUFFIX") or "", sys.version])
     return hashlib.sha256(text.encode()).hexdigest()
 
@@ -85,7 +96,7 @@ def _verified(folder: Path, library: Path) -> bool:
 def _compile(cc: str, include: str, folder: Path, library: Path) -> None:
     folder.mkdir(exist_ok=True, mode=0o755)
     partial = Path(tempfile.mkdtemp(prefix=".tmp-", dir=folder)) / library.name
-    cmd = cc.split() + list(FLAGS) + [f"-I{include}", "-o", str(partial), str(SOURCE), "-lm"]
+    cmd = cc.split() + list(FLAGS) + _numpy_flags() + [f"-I{include}", "-o", str(partial), str(SOURCE), "-lm"]
     code, stderr = run_compiler(cmd, folder)
     if code != 0:
         raise BuildError(f"compiling {SOURCE.name} failed ({' '.join(cmd)}):\n{stderr[-2000:]}")

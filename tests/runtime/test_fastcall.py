@@ -144,6 +144,15 @@ def test_rows_of_a_column_major_record_take_the_fast_path(launcher_compiled):
         assert np.array_equal(fast.x, slow.x) and np.array_equal(fast.P, slow.P)
 
 
+def test_other_float64_buffers_take_the_fast_path(launcher_compiled):
+    """Not only ndarrays: any native float64 buffer (array.array, memoryview) is read the same."""
+    import array
+    fast, slow = launcher_compiled.ekf(X0, P0, Q), _python_path(launcher_compiled.ekf(X0, P0, Q))
+    assert fast._fast_default(TIMES[0], 0.05, array.array("d", Z[1]), memoryview(STATIONS[1]), None, None) == 0
+    slow.step(TIMES[0], 0.05, Z[1], q=STATIONS[1])
+    assert np.array_equal(fast.x, slow.x) and np.array_equal(fast.P, slow.P)
+
+
 def test_fast_path_checks_its_own_call(launcher_compiled):
     fast = launcher_compiled.ekf(X0, P0, Q)._fast_default
     with pytest.raises(TypeError, match="positional"):
