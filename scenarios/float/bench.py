@@ -16,7 +16,6 @@ next to the same figure from the default double build, on the same draws.
 """
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 
@@ -24,6 +23,7 @@ import numpy as np
 
 from symkf.models import launcher as L
 from symkf.scenarios.campaign import model_key
+from symkf.scenarios.report import emit
 
 PRECISIONS = ("double", "float")
 
@@ -114,13 +114,7 @@ def run(args) -> int:
         result["attitude_scenario_I"] = attitude(args.attitude_runs, args.attitude_duration)
     if not args.skip_marg:
         result["marg_broad"] = marg()
-    text = json.dumps(result, indent=1)
-    if args.out:
-        args.out.write_text(text)
-    if args.json:
-        print(text)
-    else:
-        _print(result)
+    emit(result, args.out, args.json, _print)
     return 0
 
 

@@ -19,7 +19,6 @@
 """
 from __future__ import annotations
 
-import json
 import os
 import tempfile
 import time
@@ -31,6 +30,7 @@ from symkf.codegen import build_model
 from symkf.models.marg import ALPHA_DEFAULT, BETA_MADGWICK
 from symkf.runtime import load
 from symkf.runtime.marg import MargFilter, reference_run
+from symkf.scenarios.report import emit
 from symkf.scenarios.marg.data import data_dir, load_recording, run_recording
 from symkf.scenarios.marg.metric import broad_errors
 from . import ekf
@@ -177,14 +177,7 @@ def run(args) -> int:
         recording = first if path == trials[0] else load_recording(path)
         result["rmse_deg"][path.stem] = {form: accuracy(compiled, recording, form) for form in FORMS}
         result["mekf_rmse_deg"][path.stem] = broad_errors(ekf.run_recording(mekf, recording).q, recording, frame="enu")
-    text = json.dumps(result, indent=1)
-    if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text)
-    if args.json:
-        print(text)
-    else:
-        _print_tables(result)
+    emit(result, args.out, args.json, _print_tables)
     return 0
 
 

@@ -96,7 +96,7 @@ def per_run_tables(results):
 
 @pytest.fixture(scope="module")
 def cluster(launcher_compiled):
-    distributed = pytest.importorskip("distributed")
+    distributed = pytest.importorskip("distributed", reason="dask[distributed] is not installed (pip install 'symkf[dask]')")
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0") as c:
         yield c
 
