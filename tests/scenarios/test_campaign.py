@@ -4,6 +4,7 @@ including one whose worker is killed mid-campaign."""
 import os
 import signal
 import threading
+import time
 from concurrent.futures import Future
 
 import numpy as np
@@ -126,15 +127,26 @@ def test_dask_local_cluster_gives_bit_identical_per_run_results(cluster, on_thre
 
 def test_a_worker_killed_mid_campaign_loses_no_run_and_counts_none_twice(cluster, on_threads):
     executor = H.DaskExecutor(cluster.scheduler_address)
-    campaign = C.Campaign(RUNS, SEED, rates=(20,), duration=DURATION, chunk_runs=5)
+    # One run per task: when the first result is folded, many tasks are still queued or running,
+    # so a busy worker exists however fast the machine (run streams are keyed by run, not chunk).
+    campaign = C.Campaign(RUNS, SEED, rates=(20,), duration=DURATION, chunk_runs=1)
     tasks = campaign.tasks()
     killed = {}
     lock = threading.Lock()
 
+    def busy_workers(timeout=10.0):
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            busy = [w for w, keys in executor.client.processing().items() if keys]
+            if busy:
+                return busy
+            time.sleep(0.01)
+        return []
+
     def kill_a_busy_worker(task, chunk):
         with lock:
             if not killed:
-                busy = [w for w, keys in executor.client.processing().items() if keys]
+                busy = busy_workers()
                 assert busy, "no task in flight to lose: make the test's runs longer"
                 pid = executor.client.run(os.getpid, workers=[busy[0]])[busy[0]]
                 os.kill(pid, signal.SIGKILL)
