@@ -105,15 +105,19 @@ def _nodes(expr: ca.SX):
 
 def check_unused(model: "Model") -> None:
     """Every noise appears in the dynamics; every parameter in some equation; every measurement
-    parameter in its measurement."""
+    depends on the state and uses each of its parameters."""
     in_f = {s.name() for s in ca.symvar(model.f)}
     for var, sym in zip(model.noises, model._symbols["w"]):
         if sym.name() not in in_f:
             raise ModelError(f"model '{model.name}': noise '{var.name}' is declared but the dynamics do not use it")
     used = set(in_f)
+    states = {s.name() for s in ca.vertsplit(model.x)}
     for meas in model.measurements.values():
         in_h = {s.name() for s in ca.symvar(meas.h)}
         used |= in_h
+        if not in_h & states:
+            raise ModelError(f"model '{model.name}': measurement '{meas.name}' does not depend on the state "
+                             f"(its outputs use {sorted(in_h) or 'no symbol'}): a filter could learn nothing from it")
         for kind, variables, symbols in (("parameter", meas.params, meas.q), ("noise", meas.noise, meas.v)):
             for var, sym in zip(variables, ca.vertsplit(symbols)):
                 if sym.name() not in in_h:

@@ -215,6 +215,11 @@ def left_matrix(p) -> np.ndarray:
     return np.column_stack([hamilton(p, e) for e in np.eye(4)])
 
 
+def right_matrix(p) -> np.ndarray:
+    """R(p) with q ⊗ p = R(p) q (scalar-last)."""
+    return np.column_stack([hamilton(e, p) for e in np.eye(4)])
+
+
 def conjugate(q) -> np.ndarray:
     return q * np.array([-1.0, -1.0, -1.0, 1.0])
 
@@ -240,11 +245,17 @@ class ManifoldReference:
     """The multiplicative EKF ("mekf") and manifold UKF ("mukf") of ``codegen/families/manifold.py``
     in plain NumPy: the chart x ⊞ δ (q ⊗ Exp(δθ)), x ⊟ x̂ (Log(q̂⁻¹ ⊗ q)) and every Jacobian of it
     written out by hand here (chain rule through the model's CasADi f_d, ∂f_d/∂x, h, ∂h/∂x), the
-    quaternion mean by ``numpy.linalg.eigh``. Compiled and reference must agree to round-off."""
+    quaternion mean by ``numpy.linalg.eigh``. Compiled and reference must agree to round-off.
+    ``side="left"``: the reference-frame error of ``manifold_side="left"``, Exp(δθ) ⊗ q and
+    Log(q ⊗ q_ref⁻¹)."""
 
-    def __init__(self, model, family: str, x0, P0, Q, R: dict | None = None, p=None, kappa: float = 0.0):
+    def __init__(self, model, family: str, x0, P0, Q, R: dict | None = None, p=None, kappa: float = 0.0,
+                 side: str = "right"):
         if family not in ("mekf", "mukf"):
             raise ValueError("family: expected 'mekf' or 'mukf'")
+        if side not in ("right", "left"):
+            raise ValueError("side: expected 'right' or 'left'")
+        self.side = side
         from symkf.models import get_model
         model = get_model(model)
         self.functions = ModelFunctions(model, make_config(model))
@@ -260,7 +271,7 @@ class ManifoldReference:
     def retract(self, x, delta):
         out = x.copy()
         for i, e in self.quaternions:
-            q = hamilton(x[i:i + 4], exp_rotvec(delta[e:e + 3]))
+            q = self._compose(x[i:i + 4], exp_rotvec(delta[e:e + 3]))
             out[i:i + 4] = q / np.linalg.norm(q)
         for i, e in self.ordinary:
             out[i] = x[i] + delta[e]
@@ -270,10 +281,19 @@ class ManifoldReference:
         delta = np.zeros(self.ne)
         for i, e in self.quaternions:
             q, q_ref = x[i:i + 4] / np.linalg.norm(x[i:i + 4]), x_ref[i:i + 4] / np.linalg.norm(x_ref[i:i + 4])
-            delta[e:e + 3] = log_quaternion(hamilton(conjugate(q_ref), q))
+            error = hamilton(conjugate(q_ref), q) if self.side == "right" else hamilton(q, conjugate(q_ref))
+            delta[e:e + 3] = log_quaternion(error)
         for i, e in self.ordinary:
             delta[e] = x[i] - x_ref[i]
         return delta
+
+    def _compose(self, q, delta_q):
+        """q ⊗ δq (right) or δq ⊗ q (left)."""
+        return hamilton(q, delta_q) if self.side == "right" else hamilton(delta_q, q)
+
+    def _product_matrix(self, q):
+        """The matrix of δq -> q ⊗ δq (right) or δq ⊗ q (left)."""
+        return left_matrix(q) if self.side == "right" else right_matrix(q)
 
     def project(self, x):
         out = x.copy()
@@ -282,23 +302,25 @@ class ManifoldReference:
         return out
 
     def retract_jacobian(self, x):
-        """∂(x ⊞ δ)/∂δ at δ = 0 (n x n_e): ½ L(q̂)[:, :3] per quaternion, identity otherwise."""
+        """∂(x ⊞ δ)/∂δ at δ = 0 (n x n_e): ½ L(q̂)[:, :3] (right; ½ R(q̂)[:, :3] left) per
+        quaternion, identity otherwise."""
         J = np.zeros((self.n, self.ne))
         for i, e in self.quaternions:
-            J[i:i + 4, e:e + 3] = 0.5 * left_matrix(x[i:i + 4])[:, :3]
+            J[i:i + 4, e:e + 3] = 0.5 * self._product_matrix(x[i:i + 4])[:, :3]
         for i, e in self.ordinary:
             J[i, e] = 1.0
         return J
 
     def local_jacobian(self, x_ref, x=None):
-        """∂(x ⊟ x_ref)/∂x at x (default x_ref; n_e x n): 2 L(q_ref⁻¹)[:3] (I - n nᵀ)/|q| per quaternion."""
+        """∂(x ⊟ x_ref)/∂x at x (default x_ref; n_e x n): 2 L(q_ref⁻¹)[:3] (I - n nᵀ)/|q| per quaternion
+        (R(q_ref⁻¹) for the left side)."""
         x = x_ref if x is None else x
         J = np.zeros((self.ne, self.n))
         for i, e in self.quaternions:
             q = x[i:i + 4]
             n = q / np.linalg.norm(q)
-            J[e:e + 3, i:i + 4] = 2 * left_matrix(conjugate(x_ref[i:i + 4]))[:3] @ (np.eye(4) - np.outer(n, n)) \
-                / np.linalg.norm(q)
+            inverse = self._product_matrix(conjugate(x_ref[i:i + 4]))
+            J[e:e + 3, i:i + 4] = 2 * inverse[:3] @ (np.eye(4) - np.outer(n, n)) / np.linalg.norm(q)
         for i, e in self.ordinary:
             J[e, i] = 1.0
         return J

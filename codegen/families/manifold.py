@@ -17,7 +17,7 @@ therefore a *body-frame* (right) perturbation — Solà, "Quaternion kinematics 
 Kalman filter" (2017), eq (177) local error; Markley, "Attitude error representations for
 Kalman filtering", JGCD 26(2) 2003, with the rotation vector as the error parametrisation.
 
-**Options** (:class:`ManifoldOptions`, codegen config ``manifold_chart/_side/_step/_noise``, a
+**Options** (:class:`ManifoldOptions`, codegen config ``manifold_chart/_side/_step/_noise/_update``, a
 model's own in ``Model.codegen_defaults``): the error may instead be the vector part δp of
 δq = [δp; √(1 - |δp|²)] (paper 000 eqs (34), (41), (52); half-angle units; |δp| >= 1 is
 SYMKF_ERR_DOMAIN), on the left (δq ⊗ q̂, reference frame) instead of the right; the step may be
@@ -40,7 +40,9 @@ G = ∂(x ⊟ x̂)/∂x · ∂f/∂w at the step start.
 δ̂ = K y = Uᵀ L⁻¹ y and P⁺ = P - K S Kᵀ = P - Uᵀ U (lower triangle, mirrored); then
 the multiplicative reset x̂⁺ = x̂ ⊞ δ̂ (quaternion renormalised against round-off). The
 covariance is *not* transported to the reset point (the first-order reset of Lefferts, Markley &
-Shuster 1982, as in paper 000); the omitted term is O(|δθ̂| P).
+Shuster 1982, as in paper 000); the omitted term is O(|δθ̂| P). With ``manifold_update="sequential"``
+the same update is m scalar updates in turn (:func:`sequential_update`; a diagonal R). The step
+kernel is one expression (:func:`mekf_step_kernel`): inputs checked once, outputs selected once.
 
 **UKF.** 2 n_e + 1 sigma points δ_i = 0, ±columns of chol((n_e + κ) P) (Julier's weights, as the
 Kalman UKF), mapped through the retraction χ_i = x̂ ⊞ δ_i. Prediction: χ_i through f_d, the mean
@@ -66,9 +68,11 @@ from symkf.models.base import Model
 from .. import linalg
 from ..discretize import (FUNCTION_OPTIONS, discrete_dynamics, exact_step_function, measurement_function,
                           noisy_measurement_function)
-from ..kernels import (ModelFunctions, Symbols, all_finite, compose_step, filter_spec, innovation, make_kernel,
+from ..kernels import (CANONICAL_ORDER, ModelFunctions, Symbols, all_finite, compose_step, filter_spec, innovation,
+                       make_kernel,
                        masked_finite, masked_noise, register_family, update_status, gated)
-from ..spec import STATUS_DOMAIN, STATUS_NONFINITE, STATUS_NOT_PD, Arg, CodegenConfig, ConfigError, Family, register_options
+from ..spec import (STATUS_ARGS, STATUS_DOMAIN, STATUS_NONFINITE, STATUS_NOT_PD, Arg, CodegenConfig, ConfigError, Family,
+                   Kernel, register_options)
 from .kalman import UPDATE_INPUTS, _angle_difference, _predict_doc, _weighted_mean, noise_symbols, sigma_points
 from .quaternion_filters import quaternion_mean
 
@@ -101,15 +105,20 @@ class ManifoldOptions:
         noise: "continuous": Q_d = G Q Gᵀ dt, G = ∂f/∂w at the step start (or Q dt, additive);
             "held": the noises w are held over the step in the discrete step, Q_d = G_d (Q/dt) G_dᵀ
             with G_d = ∂(f_d(x̂, w) ⊟ f_d(x̂, 0))/∂w (paper 000 eqs (29), (44)); needs dt > 0.
+        update: the MEKF's update of a measurement that is not a quaternion and has no noise of its
+            own: "batch" (S = L Lᵀ, P - UᵀU) or "sequential" (one scalar update per component, the
+            same result to round-off for a diagonal R: :func:`sequential_update`; an R with a used
+            off-diagonal entry is SYMKF_ERR_ARGS).
     """
 
     chart: str = "rotation_vector"
     side: str = "right"
     step: str = "rk4"
     noise: str = "continuous"
+    update: str = "batch"
 
     CHOICES = {"chart": ("rotation_vector", "vector_part"), "side": ("right", "left"), "step": ("rk4", "exact"),
-               "noise": ("continuous", "held")}
+               "noise": ("continuous", "held"), "update": ("batch", "sequential")}
 
     @classmethod
     def for_model(cls, model: Model, config: CodegenConfig) -> "ManifoldOptions":
@@ -266,7 +275,7 @@ class ManifoldFunctions:
         moved = chart.local_linear(chart.project(fd(t, dt, chart.retract_linear(x, delta), u, p)), step)
         F = ca.substitute(ca.jacobian(moved, delta), delta, zero)
         self.step_and_jac = ca.Function(f"{prefix}_manifold_fd_and_jac", [t, dt, x, u, p], [step, F],
-                                        ["t", "dt", "x", "u", "p"], ["x", "F"], _CALLED)
+                                        ["t", "dt", "x", "u", "p"], ["x", "F"], _INLINE)
         # ∂(x ⊟ x̂)/∂x at x = x̂ (n_e x n): maps state-space noise into error coordinates
         J = ca.substitute(ca.jacobian(chart.local(x, x_ref), x), x, x_ref)
         self.local_jacobian = ca.Function(f"{prefix}_local_jacobian", [x_ref], [ca.densify(J)], ["x"], ["J"], _INLINE)
@@ -419,12 +428,17 @@ class MeasurementInput:
     mask: ca.SX          # per innovation component (a quaternion's one entry repeated 3 times)
     finite: ca.SX        # every input finite (z only where used)
     unit: ca.SX          # a used quaternion measurement has | |z| - 1 | <= MEASUREMENT_NORM_TOLERANCE
+    valid: ca.SX = 1     # the arguments suit the algorithm (a sequential update: R diagonal), else ARGS
 
 
-def measurement_input(model: Model, ms: ManifoldSymbols, name: str, msym: dict, extra=()) -> MeasurementInput:
+def measurement_input(model: Model, ms: ManifoldSymbols, name: str, msym: dict, extra=(),
+                      checked=None) -> MeasurementInput:
+    """``checked``: the state-side inputs whose finiteness this update checks (default x, P, u, p;
+    a fused step passes its predicted x and P, the predict part having checked the rest)."""
     s, meas = ms.base.sym, model.measurements[name]
     mask, z = msym["mask"], msym["z"]
-    finite_rest = all_finite([s["x"], ms.sym["P"], s["u"], s["p"], msym["q"], mask, msym["R"], msym["gate"], *extra])
+    checked = [s["x"], ms.sym["P"], s["u"], s["p"]] if checked is None else checked
+    finite_rest = all_finite([*checked, msym["q"], mask, msym["R"], msym["gate"], *extra])
     if not meas.quaternion:
         return MeasurementInput(z, mask, finite_rest * masked_finite(z, mask), ca.SX(1))
     use = mask[0] > 0.5
@@ -453,58 +467,141 @@ def update_outputs(chart: Chart, update, x_old, P_old, msym, m: MeasurementInput
     is_gated = gated(msym["gate"], mask, nis)
     used = ca.sum1(mask) > 0
     domain = unit * (1 - used * (1 - in_domain))
-    keep = ok * (1 - is_gated) * finite * domain
+    valid = 1 if m is None else m.valid
+    keep = ok * (1 - is_gated) * finite * domain * valid
     status = update_status(ok, is_gated, finite)
     status = linalg.select(finite * (1 - domain), STATUS_DOMAIN, status)
+    if not isinstance(valid, int):
+        status = linalg.select(finite * (1 - valid), STATUS_ARGS, status)
     x_out, P_out = (linalg.select(keep, new, old) for new, old in ((x_new, x_old), (P_new, P_old)))
     return [("x", x_out), ("P", P_out), ("y", y), ("S", S), ("status", status)]
 
 
 # ---------------------------------------------------------------------- MEKF
-def mekf_update_expr(mf: ManifoldFunctions, ms: ManifoldSymbols, name: str, msym: dict, wrap):
-    s, P = ms.base.sym, ms.sym["P"]
-    t, x = s["t"], s["x"]
-    m = measurement_input(mf.model, ms, name, msym)
+def mekf_update_expr(mf: ManifoldFunctions, ms: ManifoldSymbols, name: str, msym: dict, wrap, state=None):
+    """The MEKF update of x̂, P at t (the kernel's inputs, or ``state`` = (t, x, P) of a fused step,
+    whose P needs no PSD check of its own): batch or sequential (:class:`ManifoldOptions`)."""
+    s = ms.base.sym
+    t, x, P = state or (s["t"], s["x"], ms.sym["P"])
+    m = measurement_input(mf.model, ms, name, msym, checked=None if state is None else [x, P])
     z_pred = mf.h[name](t, x, s["u"], s["p"], msym["q"])
     H = ca.diag(m.mask) @ mf.jac_h[name](t, x, s["u"], s["p"], msym["q"])
     R = masked_noise(mf.measurement_noise(name, msym["R"], t, x, s["u"], s["p"], msym["q"]), m.mask)
     y = chart_innovation(mf, name, m, z_pred, wrap)
-    HP = H @ P                                       # sparse H: structural zeros cost nothing
-    HPH = linalg.sandwich(H, P)
+    HPH = linalg.sandwich(H, P)                      # sparse H: structural zeros cost nothing
     S = linalg.symmetric(R.shape[0], lambda i, j: HPH[i, j] + linalg.symmetric_part(R, i, j))
-    L, ok = linalg.cholesky(S)
-    # With U = L⁻¹ H P: K = Uᵀ L⁻¹, K y = Uᵀ L⁻¹ y and K S Kᵀ = Uᵀ U (as the Kalman EKF and UKF)
-    U = linalg.solve_lower(L, HP)
-    white = linalg.solve_lower(L, y)
-    correction = U.T @ white
+    if _sequential(mf, name):
+        correction, P_new, nis, ok = sequential_update(H, P, y, R)
+        m.valid = diagonal_flag(R)
+    else:
+        correction, P_new, nis, ok = batch_update(H, P, y, S)
+    ok = ok if state is not None else ok * linalg.psd_flag(P)
     x_new = mf.retract(x, correction)               # multiplicative reset
+    return (x_new, P_new, y, S, ok, nis, m.finite, mf.chart.in_domain(correction)), m
+
+
+def _sequential(mf: ManifoldFunctions, name: str) -> bool:
+    meas = mf.model.measurements[name]
+    return mf.options.update == "sequential" and not meas.quaternion and name not in mf.noise_jac
+
+
+def batch_update(H, P, y, S):
+    """With S = L Lᵀ and U = L⁻¹ H P: δ̂ = K y = Uᵀ L⁻¹ y and P⁺ = P - K S Kᵀ = P - Uᵀ U (lower
+    triangle, mirrored), as the Kalman EKF and UKF. Returns δ̂, P⁺, yᵀ S⁻¹ y and the Cholesky flag."""
+    L, ok = linalg.cholesky(S)
+    U = linalg.solve_lower(L, H @ P)
+    white = linalg.solve_lower(L, y)
     UtU = linalg.gram(U)
     P_new = linalg.symmetric(P.shape[0], lambda i, j: linalg.symmetric_part(P, i, j) - UtU[i, j])
-    nis = ca.sumsqr(white)
-    return (x_new, P_new, y, S, ok * linalg.psd_flag(P), nis, m.finite, mf.chart.in_domain(correction)), m
+    return U.T @ white, P_new, ca.sumsqr(white), ok
+
+
+def sequential_update(H, P, y, R):
+    """The same update as :func:`batch_update` for a diagonal R, as m scalar updates in turn
+    (Maybeck, "Stochastic Models, Estimation and Control" Vol. 1, 1979, sec. 7.7; exact in exact
+    arithmetic, both linearised at the prior): per component i, with the correction δ so far,
+    s_i = hᵢ P hᵢᵀ + R_ii, k = P hᵢᵀ / s_i, δ += k (y_i - hᵢ δ), P -= k (P hᵢᵀ)ᵀ (lower triangle).
+    The s_i are the pivots of S = H P Hᵀ + R (its LDLᵀ), so all s_i > 0 is the batch's Cholesky
+    flag, and Σ (y_i - hᵢ δ)² / s_i = yᵀ S⁻¹ y. A masked row (hᵢ = 0, y_i = 0, R_ii = 1) changes nothing."""
+    n = P.shape[0]
+    P = linalg.symmetric(n, lambda i, j: linalg.symmetric_part(P, i, j))
+    delta, nis, ok = ca.SX.zeros(n), ca.SX(0), ca.SX(1)
+    for i in range(H.shape[0]):
+        h = H[i, :]
+        Ph = P @ h.T
+        s = ca.dot(h.T, Ph) + R[i, i]
+        usable = (s > 0) * (s < ca.inf)
+        ok = ok * usable
+        inverse = 1 / linalg.guarded(s, usable)
+        residual = y[i] - ca.dot(h.T, delta)
+        gain = Ph * inverse
+        delta = delta + gain * residual
+        nis = nis + residual * residual * inverse
+        P = linalg.symmetric(n, lambda a, b, P=P, gain=gain, Ph=Ph: P[a, b] - gain[a] * Ph[b])
+    return delta, P, nis, ok
+
+
+def diagonal_flag(R) -> ca.SX:
+    """1 if every off-diagonal entry of R is 0 (a sequential update needs uncorrelated components)."""
+    flag = ca.SX(1)
+    for i in range(R.shape[0]):
+        for j in range(R.shape[1]):
+            if i != j:
+                flag = flag * (R[i, j] == 0)
+    return flag
 
 
 def mekf_kernels(model: Model, symbols: Symbols, fns: ModelFunctions) -> Family:
     _require_quaternion(model, "mekf")
     mf, ms = ManifoldFunctions(model, fns), ManifoldSymbols(model, symbols)
-    s, P, Q = symbols.sym, ms.sym["P"], ms.sym["Q"]
-    x_pred, F = mf.step_and_jac(s["t"], s["dt"], s["x"], s["u"], s["p"])
-    FPF, Qd = linalg.sandwich(F, P), error_process_noise(model, mf, symbols, Q, s["x"], s["t"], s["dt"])
-    P_pred = linalg.symmetric(P.shape[0], lambda i, j: FPF[i, j] + linalg.symmetric_part(Qd, i, j))
+    s, P = symbols.sym, ms.sym["P"]
+    x_pred, P_pred = mekf_predict_expr(model, mf, ms)
     doc = _predict_doc(model, "Multiplicative EKF", f"{_step_words(mf)} then |q| = 1; P = F P F^T + Q_d, "
                        "F = d(f_d(x (+) d) (-) f_d(x))/dd in error coordinates")
-    predict = predict_kernel("mekf_predict", doc, ms, mf, x_pred, P_pred, linalg.psd_flag(P),
-                             ["t", "dt", "x", "P", "u", "p", "Q"])
+    predict = predict_kernel("mekf_predict", doc, ms, mf, x_pred, P_pred, linalg.psd_flag(P), PREDICT_INPUTS)
     kernels = [predict]
     for name, meas in model.measurements.items():
         msym, marg = ms.measurement(name)
         upd, m = mekf_update_expr(mf, ms, name, msym, meas.wrap)
-        kernels.append(make_kernel(
+        update = make_kernel(
             f"mekf_update_{name}", f"Multiplicative EKF update with '{name}': H = dh(x (+) d)/dd, P - K S K^T, "
             "reset x = x (+) K y (masked, gated).", symbols, msym, marg, UPDATE_INPUTS,
-            update_outputs(mf.chart, upd, s["x"], P, msym, m)))
-        kernels.append(compose_step(f"mekf_step_{name}", predict, kernels[-1]))
+            update_outputs(mf.chart, upd, s["x"], P, msym, m))
+        kernels += [update, mekf_step_kernel(model, mf, ms, name, predict, update, (x_pred, P_pred))]
     return Family(kernels, [filter_spec("mekf", "manifold_ekf", kernels, model.measurements)])
+
+
+PREDICT_INPUTS = ["t", "dt", "x", "P", "u", "p", "Q"]
+
+
+def mekf_predict_expr(model: Model, mf: ManifoldFunctions, ms: ManifoldSymbols):
+    """x̂⁻ = f_d(x̂) projected, P⁻ = F P Fᵀ + Q_d (lower triangle, mirrored)."""
+    s, P, Q = ms.base.sym, ms.sym["P"], ms.sym["Q"]
+    x_pred, F = mf.step_and_jac(s["t"], s["dt"], s["x"], s["u"], s["p"])
+    FPF, Qd = linalg.sandwich(F, P), error_process_noise(model, mf, ms.base, Q, s["x"], s["t"], s["dt"])
+    return x_pred, linalg.symmetric(P.shape[0], lambda i, j: FPF[i, j] + linalg.symmetric_part(Qd, i, j))
+
+
+def mekf_step_kernel(model: Model, mf: ManifoldFunctions, ms: ManifoldSymbols, name: str, predict: Kernel,
+                     update: Kernel, predicted) -> Kernel:
+    """Predict then update at t + dt as ONE expression (same results and codes as
+    ``kernels.compose_step`` of the two kernels): the inputs are checked once (finiteness, |q| = 1,
+    P PSD), the predicted P needs no PSD check of its own (F P Fᵀ + Q_d of a PSD P), and the
+    outputs are selected once."""
+    s, P = ms.base.sym, ms.sym["P"]
+    msym, marg = ms.measurement(name)
+    status_pred = predict_status(mf, ms.base, P, ms.sym["Q"], linalg.psd_flag(P))
+    x1, P1 = (linalg.select(status_pred == 0, new, old) for new, old in zip(predicted, (s["x"], P)))
+    upd, m = mekf_update_expr(mf, ms, name, msym, model.measurements[name].wrap, state=(s["t"] + s["dt"], x1, P1))
+    outputs = dict(update_outputs(mf.chart, upd, x1, P1, msym, m))
+    failed = status_pred != 0
+    outputs.update(x=linalg.select(failed, s["x"], outputs["x"]), P=linalg.select(failed, P, outputs["P"]),
+                   status=linalg.select(failed, status_pred, outputs["status"]))
+    inputs = sorted(set(PREDICT_INPUTS) | set(UPDATE_INPUTS), key=CANONICAL_ORDER.index)
+    doc = (f"{predict.doc.split(' (')[0]}; then {update.doc.replace(' at time t ', ' at t + dt ')} "
+           "Both in one call.")
+    return make_kernel(f"mekf_step_{name}", doc, ms.base, msym, marg, inputs, list(outputs.items()),
+                       carried=("x", "P"), per_step=tuple(i for i in inputs if i in ("t", "dt", "u", "q", "z", "mask")))
 
 
 def _step_words(mf: ManifoldFunctions) -> str:

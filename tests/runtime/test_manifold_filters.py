@@ -37,11 +37,19 @@ def _assert_close(a, b, rtol=1e-11, what=""):
     assert np.max(np.abs(a - b)) <= rtol * scale, f"{what}: max difference {np.max(np.abs(a - b)):.3e}"
 
 
+@pytest.fixture(scope="module")
+def spinner_left():
+    """The same model with the reference-frame (left) error δq ⊗ q̂."""
+    return load(SPINNER, backend="compiled", manifold_side="left")
+
+
+@pytest.mark.parametrize("side", ["right", "left"])
 @pytest.mark.parametrize("family", ["mekf", "mukf"])
-def test_one_step_equals_numpy_reference(spinner, family):
+def test_one_step_equals_numpy_reference(request, family, side):
+    spinner = request.getfixturevalue("spinner" if side == "right" else "spinner_left")
     compiled = spinner.filter(family, X0, P0, QPSD, kappa=0.5) if family == "mukf" else \
         spinner.filter(family, X0, P0, QPSD)
-    ref = ManifoldReference(SPINNER, family, X0, P0, QPSD, kappa=0.5)
+    ref = ManifoldReference(SPINNER, family, X0, P0, QPSD, kappa=0.5, side=side)
     truth = hamilton(Q0, exp_rotvec(np.array([0.05, -0.08, 0.1])))
     compiled.predict(0.0, 0.02, u=U)
     ref.predict(0.0, 0.02, u=U)
@@ -60,6 +68,44 @@ def test_one_step_equals_numpy_reference(spinner, family):
     _assert_close(compiled.P, ref.P, what="step P")
     # the correction really moved the quaternion (the test is not vacuous)
     assert np.linalg.norm(log_quaternion(hamilton(Q0 * [-1, -1, -1, 1], compiled.x[:4]))) > 0.05
+
+
+def test_sequential_update_equals_the_batch_reference():
+    """manifold_update="sequential" (one scalar update per component, models/marg_ekf.py's choice)
+    gives the batch NumPy reference's update to round-off, masked components included; a used
+    correlation in R is refused (SYMKF_ERR_ARGS), state unchanged."""
+    spinner = load(SPINNER, backend="compiled", manifold_update="sequential")
+    compiled = spinner.filter("mekf", X0, P0, QPSD)
+    ref = ManifoldReference(SPINNER, "mekf", X0, P0, QPSD)
+    z = _vectors(hamilton(Q0, exp_rotvec(np.array([0.05, -0.08, 0.1]))))
+    for mask in (np.array([1, 1, 1, 0, 1, 1.0]), np.ones(6)):
+        compiled.step(0.0, 0.02, z, "vectors", mask=mask, u=U)
+        ref.step(0.0, 0.02, z, "vectors", mask=mask, u=U)
+        _assert_close(compiled.x, ref.x, what="sequential x")
+        _assert_close(compiled.P, ref.P, what="sequential P")
+        _assert_close(compiled.S("vectors"), ref.S, what="S")
+    assert np.linalg.norm(log_quaternion(hamilton(Q0 * [-1, -1, -1, 1], compiled.x[:4]))) > 0.05
+    x, P = compiled.x.copy(), compiled.P.copy()
+    R = np.diag(np.square([0.02] * 3 + [0.05] * 3))
+    R[0, 1] = R[1, 0] = 1e-4
+    compiled.set_R("vectors", R)
+    with pytest.raises(SymkfError, match="ARGS"):
+        compiled.update(z, "vectors")
+    np.testing.assert_array_equal(compiled.x, x)
+    np.testing.assert_array_equal(compiled.P, P)
+
+
+def test_left_and_right_charts_differ_and_the_reference_tells_them_apart(spinner, spinner_left):
+    """The two sides give different covariances (a body-frame vs a reference-frame error), and the
+    reference of the other side does not match: the left-chart test above checks the left chart."""
+    right, left = spinner.filter("mekf", X0, P0, QPSD), spinner_left.filter("mekf", X0, P0, QPSD)
+    for f in (right, left):
+        f.predict(0.0, 0.02, u=U)
+    ref_right = ManifoldReference(SPINNER, "mekf", X0, P0, QPSD, side="right")
+    ref_right.predict(0.0, 0.02, u=U)
+    assert np.max(np.abs(left.P - right.P)) > 1e-5          # ~1 % of P here; equality tests use 1e-11
+    assert np.max(np.abs(left.P - ref_right.P)) > 1e-5
+    _assert_close(right.P, ref_right.P, what="right predict P")
 
 
 def test_manifest_records_quaternion_and_error_dimension(spinner):
@@ -145,3 +191,30 @@ def test_quaternion_state_declaration_errors():
     with pytest.raises(ModelError, match="must be a 4-vector"):
         m.set_dynamics({"q": q[0:3]})
     assert m.nx == 4 and m.n_error == 3
+
+
+def test_measurement_that_depends_on_nothing_is_refused():
+    import casadi as ca
+    m = Model("constant_sensor", "a quaternion and a sensor that reads a constant")
+    q = m.quaternion_state("q", "attitude")
+    m.set_dynamics({"q": 0 * q})
+    m.measurement("blind", [("k", "-", "a constant reading", ca.SX(1.0))], sigma=[0.1])
+    m.filters = ("mekf",)
+    with pytest.raises(ModelError, match="measurement 'blind' does not depend on the state"):
+        m.validate()
+
+
+def test_initial_value_errors_are_clear(spinner):
+    """Wrong sizes and a non-unit initial quaternion are refused with the rule that was broken;
+    a quaternion within the tolerance is accepted and the prediction projects it onto |q| = 1."""
+    with pytest.raises(ValueError, match=r"x: expected shape \(6,\), got \(5,\)"):
+        spinner.filter("mekf", X0[:5], P0, QPSD)
+    with pytest.raises(ValueError, match="quaternion state 'q'.*norm 1.1, expected 1 within 1e-06"):
+        spinner.filter("mekf", np.r_[1.1 * Q0, X0[4:]], P0, QPSD)
+    with pytest.raises(ValueError, match=r"P: expected shape \(5, 5\), got \(6, 6\)"):
+        spinner.filter("mekf", X0, np.eye(6), QPSD)
+    with pytest.raises(ValueError, match=r"Q: expected shape \(5, 5\)"):
+        spinner.filter("mukf", X0, P0, np.eye(6))
+    f = spinner.filter("mekf", np.r_[(1 + 1e-9) * Q0, X0[4:]], P0, QPSD)
+    f.predict(0.0, 0.01, u=U)
+    assert abs(np.linalg.norm(f.x[:4]) - 1) < 1e-15
