@@ -68,5 +68,13 @@ def load(model, backend: str = "auto", **overrides) -> CompiledModel:
 
 
 def _vm_model(model, reason: str, **overrides) -> CompiledModel:
-    bundle = generate(model, make_config(model, **overrides))
+    """The VM backend; refused for a single-precision configuration: CasADi's VM evaluates in
+    double only, so it would give double's numbers under a float build's name."""
+    config = make_config(model, **overrides)
+    if config.precision != "double":
+        why = f" ({reason})" if reason else ""
+        error = CompilerNotFound if reason else ValueError
+        raise error(f"precision='{config.precision}' needs the compiled C: CasADi's virtual machine evaluates "
+                    f"in double only{why}")
+    bundle = generate(model, config)
     return CompiledModel(model.name, VirtualMachineBackend(bundle, reason), bundle.description, bundle.filters)

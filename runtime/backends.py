@@ -168,7 +168,7 @@ class VirtualMachineBackend:
     """The same kernels evaluated by CasADi's virtual machine (no C compiler needed; slower)."""
 
     kind = "casadi-vm"
-    #: CasADi's VM evaluates in double, also for a float build's configuration.
+    #: CasADi's VM evaluates in double (``load`` refuses a float configuration on this backend).
     dtype = np.dtype(np.float64)
 
     def __init__(self, bundle: Bundle, reason: str = ""):

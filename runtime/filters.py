@@ -168,7 +168,7 @@ class Filter:
         known = {name: value for name, value in self.spec.defaults.items()}
         known.update(contract.known_keys("options", scalars, self.spec.defaults))
         for name, value in known.items():
-            self._buffers[name][0] = contract.real(name, value)
+            self._buffers[name][0] = self._fits(name, contract.real(name, value))
 
     def _set_noise(self, R: dict | None) -> None:
         R = contract.known_keys("R", R, self.spec.measurements)
@@ -274,14 +274,22 @@ class Filter:
 
     def _write_state(self, name: str, value: np.ndarray) -> None:
         """Write a checked value; for a float build refuse one that float cannot hold (buffer unchanged)."""
-        if self._dtype != np.float64:
-            with np.errstate(over="ignore"):
-                converted = value.astype(self._dtype)
-            if not np.isfinite(converted).all():
-                raise ValueError(f"{name}: a value overflows {self._dtype.name} (|value| > "
-                                 f"{np.finfo(self._dtype).max:.3g} after scaling)")
-            value = converted
-        self._buffers[name][:] = value
+        self._buffers[name][:] = self._fits(name, value, " after scaling" if self._scaling is not None else "")
+
+    def _fits(self, name: str, value, where: str = ""):
+        """``value`` unchanged if the buffers' element type holds it; for a float build, ValueError
+        (nothing written, no NumPy overflow warning) if a finite value overflows float (|value| >
+        3.4e38), checked before any buffer of the call is written. NaN and Inf pass: the contract
+        and the kernels decide about them."""
+        if self._dtype == np.float64:
+            return value
+        array = np.asarray(value, dtype=float)
+        with np.errstate(over="ignore"):
+            converted = array.astype(self._dtype)
+        if np.any(np.isinf(converted) & np.isfinite(array)):
+            raise ValueError(f"{name}: a value overflows {self._dtype.name} (|value| > "
+                             f"{np.finfo(self._dtype).max:.3g}{where}), the range of this float build")
+        return value
 
     @property
     def p(self) -> np.ndarray:
@@ -289,7 +297,7 @@ class Filter:
 
     @p.setter
     def p(self, value) -> None:
-        self._buffers["p"][:] = contract.finite_array("p", value, self._buffers["p"].shape)
+        self._buffers["p"][:] = self._fits("p", contract.finite_array("p", value, self._buffers["p"].shape))
 
     def R(self, measurement: str | None = None) -> np.ndarray:
         return read_only(self._measurement(measurement)["R"])
@@ -297,7 +305,8 @@ class Filter:
     def set_R(self, measurement: str, value) -> None:
         """Measurement noise covariance (symmetric positive definite)."""
         buffers = self._measurement(measurement)
-        buffers["R"][:] = covariance(f"R[{measurement}]", value, buffers["R"].shape[0], definite=True)
+        name = f"R[{measurement}]"
+        buffers["R"][:] = self._fits(name, covariance(name, value, buffers["R"].shape[0], definite=True))
 
     def set_gate(self, measurement: str, probability: float | None = None, threshold: float | None = None) -> None:
         """Chi-square innovation gate: an update whose y^T S^-1 y exceeds the ``probability``
@@ -360,8 +369,8 @@ class Filter:
         values = self._measurement_values(name, {"z": z, "q": q, "mask": mask}, nan)
         t = self.t if t is None else contract.real("t", t)
         u = self._input(u)
-        self._write_measurement(name, values)
         self._write_time(t, None, u)
+        self._write_measurement(name, values)
         return self._check(self._calls[self.spec.update[name]](), f"update '{name}'", name)
 
     def step(self, t: float, dt: float, z, measurement: str | None = None, q=None, mask=None,
@@ -381,8 +390,8 @@ class Filter:
         values = self._measurement_values(name, given, nan)
         t = self.t if t is None else contract.real("t", t)
         dt, u = contract.time_step(dt), self._input(u)
-        self._write_measurement(name, values)
         self._write_time(t, dt, u)
+        self._write_measurement(name, values)
         code = self._check(self._calls[self.spec.step[name]](), f"step '{name}'", name)
         self.t = t + dt
         return code
@@ -400,7 +409,7 @@ class Filter:
             if u is not None:
                 raise ValueError(f"u: filter '{self.family}' has no inputs")
             return None
-        return contract.finite_array("u", u, self._buffers["u"].shape)
+        return self._fits("u", contract.finite_array("u", u, self._buffers["u"].shape))
 
     def _measurement_values(self, name: str, given: dict, nan: str) -> dict[str, np.ndarray]:
         """Validated per-call measurement inputs (z, q, mask or a family's own); writes nothing."""
@@ -421,6 +430,9 @@ class Filter:
                 values[key] = contract.exact_array(key, value, buffers[key].shape)
         if nan == "mask":
             values = self._mask_nonfinite(values, buffers)
+        for key, value in values.items():
+            if value is not None:
+                self._fits(key, value)
         return values
 
     def _mask_nonfinite(self, values: dict, buffers: dict) -> dict:
@@ -442,6 +454,9 @@ class Filter:
                 buffers[key][...] = value
 
     def _write_time(self, t: float, dt: float | None, u) -> None:
+        """Time (and input) of a call: checked for the buffers' type before anything is written;
+        the measurement's values are written after this (they are already checked)."""
+        self._fits("t", t), self._fits("dt", dt if dt is not None else 0.0)
         if "t" in self._buffers:
             self._buffers["t"][0] = t
         if dt is not None:
@@ -551,6 +566,8 @@ class Filter:
         info = self._backend.kernels[kernel]
         constants = {**self._buffers, **self.measurements[name]}
         dtype = self._dtype
+        for n in info.per_step:
+            self._fits(n, per_step[n])
         arrays = [np.ascontiguousarray(per_step[n], dtype=dtype) if n in info.per_step
                   else np.asfortranarray(constants[n], dtype=dtype) for n, _ in info.inputs]
         histories = {n: np.zeros((n_steps,) + self._buffers[n].shape[::-1], dtype) for n in self.spec.state}

@@ -167,3 +167,49 @@ def test_user_model_bundle_builds_clean_alone(tmp_path, precision):
     ekf = load(path, precision=precision).ekf([6.4e6 + 12.5, 3.0], np.diag([4.0, 1.0]), np.diag([1e-4, 1e-4]))
     ekf.step(0.0, 0.1, [6.4e6 + 13.0])
     assert abs(ekf.x[0] - (6.4e6 + 12.9)) < 0.2 and ekf.P[0, 0] < 4.0
+
+
+def _state(f):
+    return f.kernel_buffer("x").copy(), f.kernel_buffer("P").copy(), f.t
+
+
+@pytest.mark.parametrize("call", ["update", "step", "run", "t", "R", "p", "kappa"])
+def test_float_build_refuses_values_beyond_float_range_without_warning(launcher_float, call):
+    """A finite value float cannot hold (1e39 > 3.4e38) is a ValueError naming the argument,
+    raised before any buffer is written and without NumPy's overflow RuntimeWarning."""
+    import warnings
+    from symkf.scenarios.launcher import campaign as C
+    x0, P0 = C.L.initial_state(), np.diag(C.TUNING["P0_floor"] ** 2)
+    f = launcher_float.ukf(x0, P0, C.TUNING["Q"])
+    f.step(0.0, 0.05, [60.0, 1.2, 2.5], q=C.L.station_params(1))
+    before, R_before = _state(f), f.R("radar").copy()
+    z, q = [1e39, 1.2, 2.5], C.L.station_params(1)
+    attempts = {
+        "update": (lambda: f.update(z, q=q), "z"),
+        "step": (lambda: f.step(0.05, 0.05, z, q=q), "z"),
+        "run": (lambda: f.run([0.1, 0.15], [[60.0, 1.2, 2.5], z], q=q), "z"),
+        "t": (lambda: f.step(1e39, 0.05, [60.0, 1.2, 2.5], q=q), "t"),
+        "R": (lambda: f.set_R("radar", np.diag([1e39, 1.0, 1.0])), r"R\[radar\]"),
+        "p": (lambda: setattr(f, "p", np.full(f.p.size, 1e39)), "p"),
+        "kappa": (lambda: launcher_float.ukf(x0, P0, C.TUNING["Q"], kappa=1e39), "kappa"),
+    }
+    attempt, name = attempts[call]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(ValueError, match=rf"^{name}: a value overflows float32"):
+            attempt()
+    after = _state(f)
+    assert all(np.array_equal(a, b) for a, b in zip(before, after)) and np.array_equal(f.R("radar"), R_before)
+
+
+def test_float_configuration_is_refused_by_the_virtual_machine(tmp_path, monkeypatch):
+    """CasADi's VM evaluates in double: a float configuration is refused there instead of
+    silently giving double's numbers (explicitly, or as the fallback without a C compiler)."""
+    from symkf.codegen import CompilerNotFound
+    from symkf.runtime import load
+    with pytest.raises(ValueError, match="virtual machine evaluates in double only"):
+        load("launcher", backend="casadi-vm", precision="float")
+    monkeypatch.setenv("SYMKF_BUILD_DIR", str(tmp_path / "empty"))
+    monkeypatch.setenv("CC", "no-such-compiler-symkf")
+    with pytest.raises(CompilerNotFound, match="double only.*no C compiler found"):
+        load("launcher", precision="float")
