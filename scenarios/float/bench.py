@@ -1,18 +1,25 @@
 """Single precision beside double: every figure from the float build (``precision="float"``)
 next to the same figure from the default double build, on the same draws.
 
-    symkf bench float [--runs 5] [--attitude-runs 2] [--json] [--out FILE] [--skip-attitude] [--skip-marg]
+    symkf bench float [--runs 100] [--attitude-runs 2] [--attitude-duration 600] [--geo-duration 1000]
+                      [--json] [--out FILE] [--skip-launcher] [--skip-attitude] [--skip-marg] [--skip-geo]
 
 - launcher (paper 004): the 20 Hz small-error case (eq 9) of the campaign (preset ``correct``,
   seed 2005): ``--runs`` Monte Carlo runs of the whole flight through the EKF and the UKF, each
   run by the campaign's own task (:func:`symkf.scenarios.launcher.campaign.run_chunk`) once per
-  build. Whole-flight RMS (eq 11) of r and V, refused steps (status other than 0 or gated), and
-  float / double. The float build carries the scaled state (codegen/scaling.py).
+  build. Whole-flight RMS (eq 11) of r and V, refused steps (status other than 0), diverged runs
+  (the campaign's definition) and float / double. ``--runs 100`` (the default) is the case exactly
+  as ``symkf compare launcher`` runs it. The float build carries the scaled state (codegen/scaling.py).
 - attitude (paper 000, scenario I): ``--attitude-runs`` runs of ``--attitude-duration`` s, MEKF
   and UKF (:func:`symkf.scenarios.attitude.compare.one_run`): attitude RMS over the second half.
 - marg (paper 001, BROAD trials in ``$SYMKF_DATA_DIR/broad``): the generated MEKF of
   ``models/marg_ekf.py`` and the gradient-descent filter (simplified form, beta = 0.041): mean
   total RMSE over the trials.
+- geo (paper 003, Table 7 case 3 with bias and noise, and case 4 with gyros A and C failed): the
+  closed loop of :mod:`symkf.scenarios.geo.closed_loop` for ``--geo-duration`` s, truth, sensors
+  and controller in double, only the continuous-discrete EKF from the float build: RMS of the
+  attitude estimation error and of the true attitude over the second half (deg). A refused
+  update stops the loop (SymkfError) and is reported as such.
 """
 from __future__ import annotations
 
@@ -29,11 +36,14 @@ PRECISIONS = ("double", "float")
 
 
 def add_arguments(parser) -> None:
-    parser.add_argument("--runs", type=int, default=5, help="launcher Monte Carlo runs (default 5)")
+    parser.add_argument("--runs", type=int, default=100, help="launcher Monte Carlo runs (default 100, the campaign's)")
     parser.add_argument("--attitude-runs", type=int, default=2, help="attitude Monte Carlo runs (default 2)")
     parser.add_argument("--attitude-duration", type=float, default=600.0, help="attitude seconds per run (default 600)")
+    parser.add_argument("--geo-duration", type=float, default=1000.0, help="geo closed-loop seconds (default 1000)")
+    parser.add_argument("--skip-launcher", action="store_true")
     parser.add_argument("--skip-attitude", action="store_true")
     parser.add_argument("--skip-marg", action="store_true")
+    parser.add_argument("--skip-geo", action="store_true")
     parser.add_argument("--json", action="store_true", help="print the results as JSON only")
     parser.add_argument("--out", type=Path, default=None, help="also write the JSON here")
 
@@ -53,10 +63,12 @@ def launcher(runs: int, seed: int = 2005) -> dict:
         for family in C.FILTERS:
             rms = chunk.errors[family].rms()
             whole = C.whole_flight_mean(np.where(C.ANGLE_STATES, np.degrees(rms), rms))
-            failed = chunk.per_run[family][:, C.PER_RUN_COLUMNS.index("failed_steps")]
+            per_run = chunk.per_run[family]
+            failed = per_run[:, C.PER_RUN_COLUMNS.index("failed_steps")]
+            diverged = per_run[:, C.PER_RUN_COLUMNS.index("diverged")]
             out.setdefault(family, {})[precision] = {
                 "r_rms_m": float(whole[3]), "V_rms_m_s": float(whole[0]), "refused_steps": int(failed.sum()),
-                "runs": runs, "filter_seconds": chunk.wall_s[family], "wall_seconds": time.perf_counter() - start}
+                "diverged_runs": int(diverged.sum()), "runs": runs, "filter_seconds": chunk.wall_s[family], "wall_seconds": time.perf_counter() - start}
     return out
 
 
@@ -106,25 +118,64 @@ def marg() -> dict:
     return out
 
 
+#: The geo closed loops compared: Table 7 case 3 (bias and noise on) and case 4 (gyros A, C failed).
+GEO_RUNS = {"case3_bias_noise": {}, "case4_fail_AC": {"failed_gyros": ("A", "C")}}
+
+
+def geo(duration: float) -> dict:
+    """The geo closed loops with the EKF from each build (truth, sensors and control in double)."""
+    from symkf.runtime import SymkfError, load
+    from symkf.scenarios.geo.closed_loop import TICK, ClosedLoop, LoopSettings
+    double = load("geo_satellite")
+    builds = {"double": double, "float": load("geo_satellite", precision="float")}
+    out = {}
+    for label, options in GEO_RUNS.items():
+        for precision, compiled in builds.items():
+            loop = ClosedLoop(LoopSettings(duration, "ekf", bias=True, noise=True, **options), double)
+            tuning = loop.tuning
+            loop.filter = compiled.filter("cd_ekf", np.zeros(17), tuning["P0"], tuning["Q"], R=tuning["R"])
+            rows = out.setdefault(label, {}).setdefault("cd_ekf", {})
+            try:
+                result = loop.run()
+            except SymkfError as exc:
+                rows[precision] = {"refused": str(exc), "refused_steps": 1}
+                continue
+            half = len(result.t) // 2
+            estimation = np.degrees(result.estimation_error("angle")[half:])
+            rows[precision] = {
+                "attitude_estimation_rms_deg": float(np.sqrt(np.mean(estimation ** 2))),
+                "attitude_rms_deg": float(np.sqrt(np.mean(result.attitude_deg[half:] ** 2))),
+                "bias_estimation_rms_rad_s": float(np.sqrt(np.mean(result.estimation_error("bias")[half:] ** 2))),
+                "refused_steps": 0, "ticks": len(result.t), "duration_s": duration,
+                "completed": bool(len(result.t) == len(np.arange(0.0, duration + 1e-9, TICK)))}
+    return out
+
+
 def run(args) -> int:
-    if args.runs < 1 or args.attitude_runs < 1:
-        raise SystemExit("--runs and --attitude-runs must be >= 1")
-    result = {"launcher_20Hz_small": launcher(args.runs)}
+    if args.runs < 1 or args.attitude_runs < 1 or not args.geo_duration > 0:
+        raise SystemExit("--runs and --attitude-runs must be >= 1 and --geo-duration > 0")
+    result = {}
+    if not args.skip_launcher:
+        result["launcher_20Hz_small"] = launcher(args.runs)
     if not args.skip_attitude:
         result["attitude_scenario_I"] = attitude(args.attitude_runs, args.attitude_duration)
     if not args.skip_marg:
         result["marg_broad"] = marg()
+    if not args.skip_geo:
+        for label, rows in geo(args.geo_duration).items():
+            result[f"geo_{label}"] = rows
     emit(result, args.out, args.json, _print)
     return 0
 
 
 #: (section, metric, unit) of the printed table.
 _METRICS = {"launcher_20Hz_small": ("r_rms_m", "m"), "attitude_scenario_I": ("attitude_rms_deg", "deg"),
-            "marg_broad": ("mean_total_rmse_deg", "deg")}
+            "marg_broad": ("mean_total_rmse_deg", "deg"),
+            **{f"geo_{label}": ("attitude_estimation_rms_deg", "deg") for label in GEO_RUNS}}
 
 
 def _print(result: dict) -> None:
-    print(f"{'case':20s} {'filter':9s} {'metric':25s} {'double':>9s} {'float':>9s} {'ratio':>6s} {'refused d/f':>11s}")
+    print(f"{'case':20s} {'filter':9s} {'metric':34s} {'double':>9s} {'float':>9s} {'ratio':>6s} {'refused d/f':>11s}")
     for section, (metric, unit) in _METRICS.items():
         for family, rows in result.get(section, {}).items():
             if family == "skipped":
@@ -132,5 +183,9 @@ def _print(result: dict) -> None:
                 continue
             d, f = rows["double"], rows["float"]
             refused = f"{d['refused_steps']}/{f['refused_steps']}"
-            print(f"{section:20s} {family:9s} {metric + ' (' + unit + ')':25s} {d[metric]:9.4g} {f[metric]:9.4g} "
-                  f"{f[metric] / d[metric]:6.2f} {refused:>11s}")
+            if metric not in d or metric not in f:
+                print(f"{section:20s} {family:9s} refused: {d.get('refused', '-')} / {f.get('refused', '-')}")
+                continue
+            diverged = f"  diverged runs {d['diverged_runs']}/{f['diverged_runs']}" if "diverged_runs" in d else ""
+            print(f"{section:20s} {family:9s} {metric + ' (' + unit + ')':34s} {d[metric]:9.4g} {f[metric]:9.4g} "
+                  f"{f[metric] / d[metric]:6.2f} {refused:>11s}{diverged}")
