@@ -1,0 +1,36 @@
+"""`symkf bench float`: the float and double builds on the same draws, refused steps counted."""
+import json
+
+import pytest
+
+from symkf.scenarios.cli import main
+
+
+def test_bench_float_launcher_one_run(tmp_path, capsys):
+    out = tmp_path / "new" / "float.json"
+    assert main(["bench", "float", "--runs", "1", "--skip-attitude", "--skip-marg", "--skip-geo", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "launcher_20Hz_small  ekf" in printed and "diverged runs 0/0" in printed
+    result = json.loads(out.read_text())["launcher_20Hz_small"]
+    for family in ("ekf", "ukf"):
+        double, single = result[family]["double"], result[family]["float"]
+        assert double["runs"] == single["runs"] == 1
+        assert double["refused_steps"] == single["refused_steps"] == 0
+        assert double["diverged_runs"] == single["diverged_runs"] == 0
+        assert 0.2 < double["r_rms_m"] < 1.5 and single["r_rms_m"] < 2 * double["r_rms_m"], result[family]
+
+
+@pytest.mark.slow
+def test_bench_float_geo_closed_loops():
+    from symkf.scenarios.float.bench import GEO_RUNS, geo
+    result = geo(50.0)
+    assert set(result) == set(GEO_RUNS)
+    for label, rows in result.items():
+        double, single = rows["cd_ekf"]["double"], rows["cd_ekf"]["float"]
+        assert double["completed"] and single["completed"] and single["refused_steps"] == 0, label
+        assert abs(single["attitude_estimation_rms_deg"] / double["attitude_estimation_rms_deg"] - 1) < 0.05, label
+
+
+def test_bench_float_refuses_bad_sizes():
+    with pytest.raises(SystemExit, match="--runs"):
+        main(["bench", "float", "--runs", "0"])
