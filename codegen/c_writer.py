@@ -332,58 +332,105 @@ def _sanitised_z(kernel: Kernel) -> bool:
     return sizes.get("z", 0) > 0 and sizes.get("mask") == sizes["z"]
 
 
-def _input_checks(kernel: Kernel) -> list[str]:
-    """Refuse NaN/Inf inputs before any arithmetic (C's isfinite raises no floating-point
-    exception; a comparison with NaN inside the kernel would raise FE_INVALID). A masked
-    component of z may be NaN: it is replaced by 0 in a copy, so it enters no arithmetic."""
-    lines = []
-    for a in kernel.inputs:
-        how = passing(a, kernel)
-        if how == "value":
-            lines.append(f"  if (!isfinite({a.name})) return SYMKF_ERR_NONFINITE;")
-        elif how == "pointer" and not (a.name == "z" and _sanitised_z(kernel)):
-            lines.append(f"  for (i = 0; i < {a.size}; ++i) if (!isfinite({a.name}[i])) return SYMKF_ERR_NONFINITE;")
+#: The API unit's finiteness test of an array (C's isfinite raises no floating-point exception).
+FINITE_HELPER = """static inline int symkf_finite(const casadi_real *v, int n) {
+  int i;
+  for (i = 0; i < n; ++i) if (!isfinite(v[i])) return 0;
+  return 1;
+}
+"""
+
+
+def _finite_terms(kernel: Kernel, names, where) -> list[str]:
+    """``symkf_finite(...)`` of the named inputs (a sanitised z excluded: it is tested after masking);
+    ``where(a)`` is the C expression of input ``a``'s first element's address."""
+    return [f"symkf_finite({where(a)}, {a.size})" for a in kernel.inputs
+            if a.name in names and passing(a, kernel) != "omit" and not (a.name == "z" and _sanitised_z(kernel))]
+
+
+def _checks(kernel: Kernel) -> list[str]:
+    """Refuse NaN/Inf inputs before any arithmetic (a comparison with NaN inside the kernel would
+    raise FE_INVALID). A masked component of z may be NaN: it is replaced by 0 in a copy (z_used),
+    so it enters no arithmetic, and the used components are tested there."""
+    terms = _finite_terms(kernel, [a.name for a in kernel.inputs],
+                          lambda a: f"&{a.name}" if passing(a, kernel) == "value" else a.name)
+    lines = [f"  if (!({' && '.join(terms or ['1'])})) return SYMKF_ERR_NONFINITE;"]
     if _sanitised_z(kernel):
         size = next(a.size for a in kernel.inputs if a.name == "z")
         index = "[i]" if size > 1 else ""           # a one-component z and mask come by value
-        lines = [f"  casadi_real z_used[{size}];"] + lines
-        lines.append(f"  for (i = 0; i < {size}; ++i) {{")
-        lines.append(f"    z_used[i] = mask{index} > (casadi_real) 0.5 ? z{index} : (casadi_real) 0;")
-        lines.append("    if (!isfinite(z_used[i])) return SYMKF_ERR_NONFINITE;")
-        lines.append("  }")
+        lines = [f"  casadi_real z_used[{size}];", "  int i;"] + lines
+        lines.append(f"  for (i = 0; i < {size}; ++i) z_used[i] = mask{index} > (casadi_real) 0.5 ? z{index} : (casadi_real) 0;")
+        lines.append(f"  if (!symkf_finite(z_used, {size})) return SYMKF_ERR_NONFINITE;")
     return lines
 
 
-def _wrapper(model: str, kernel: Kernel) -> str:
-    f = kernel.function
-    lines = [f"int {model}_{kernel.name}({', '.join(_param_list(kernel))}) {{",
-             f"  const casadi_real *arg[{max(f.sz_arg(), 1)}];",
-             f"  casadi_real *res[{max(f.sz_res(), 1)}];",
-             f"  int iw[{max(f.sz_iw(), 1)}];",
-             f"  casadi_real w[{max(f.sz_w(), 1)}];",
-             "  casadi_real status = 0;"]
-    for i, a in enumerate(kernel.outputs[:-1]):
-        lines.append(f"  casadi_real tmp{i}[{max(a.size, 1)}];")
-    lines.append("  int i;")
-    lines += _input_checks(kernel)
-    sanitised = _sanitised_z(kernel)
-    for i, a in enumerate(kernel.inputs):
-        how = passing(a, kernel)
-        if sanitised and a.name == "z":
-            lines.append(f"  arg[{i}] = z_used;")
-        else:
-            lines.append(f"  arg[{i}] = " + {"omit": "0", "value": f"&{a.name}", "pointer": a.name}[how] + ";")
-    lines += [f"  res[{i}] = tmp{i};" for i in range(len(kernel.outputs) - 1)]
+def _arg_expression(a: Arg, kernel: Kernel, replace: dict[str, str]) -> str:
+    """What a kernel call's arg[] slot receives for input ``a`` (by name; ``replace`` overrides)."""
+    if a.name in replace:
+        return replace[a.name]
+    return {"omit": "0", "value": f"&{a.name}", "pointer": a.name}[passing(a, kernel)]
+
+
+def _call_kernel(model: str, kernel: Kernel, outputs: list[str], replace: dict[str, str]) -> list[str]:
+    """Fill arg[] and res[] and call a kernel's entry point (status into ``status``)."""
+    lines = [f"  arg[{i}] = {_arg_expression(a, kernel, replace)};" for i, a in enumerate(kernel.inputs)]
+    lines += [f"  res[{i}] = {name};" for i, name in enumerate(outputs)]
     lines.append(f"  res[{len(kernel.outputs) - 1}] = &status;")
     lines.append(f"  if ({raw_name(model, kernel)}(arg, res, iw, w, 0) != 0) return SYMKF_ERR_EVAL;")
+    return lines
+
+
+def _eval(model: str, kernel: Kernel, kernels: dict[str, Kernel]) -> str:
+    """``<model>_<kernel>_eval``: the kernel on inputs already checked. A fused step calls its
+    predict, returns predict's code if that failed, then calls its update at t + dt on the
+    predicted x and P (the step Function's composition, compose_step, without its copies)."""
+    called = [kernels[name] for name in kernel.parts] or [kernel]
+    sizes = [max([getattr(k.function, size)() for k in called] + [1]) for size in ("sz_arg", "sz_res", "sz_iw", "sz_w")]
+    lines = [f"static int {model}_{kernel.name}_eval({', '.join(_param_list(kernel))}) {{",
+             f"  const casadi_real *arg[{sizes[0]}];", f"  casadi_real *res[{sizes[1]}];",
+             f"  int iw[{sizes[2]}];", f"  casadi_real w[{sizes[3]}];", "  casadi_real status = 0;"]
+    lines += [f"  casadi_real tmp{i}[{max(a.size, 1)}];" for i, a in enumerate(kernel.outputs[:-1])]
+    lines.append("  int i;")
+    replace = {}
+    if kernel.parts:
+        predict = called[0]
+        lines += [f"  casadi_real predicted_{a.name}[{max(a.size, 1)}];" for a in predict.outputs[:-1]]
+        lines.append("  casadi_real t_next;")
+        lines += _call_kernel(model, predict, [f"predicted_{a.name}" for a in predict.outputs[:-1]], {})
+        lines += ["  if (status != 0) return (int) status;", "  t_next = t + dt;"]
+        replace = {"t": "&t_next", "x": "predicted_x", "P": "predicted_P"}      # as compose_step
+    last = called[-1]
+    lines += _call_kernel(model, last, [f"tmp{i}" for i in range(len(kernel.outputs) - 1)], replace)
     lines.append("  if (status != 0 && status != SYMKF_GATED) return (int) status;   /* gated: written, reported */")
     for i, a in enumerate(kernel.outputs[:-1]):
         if a.size:
-            lines.append(f"  for (i = 0; i < {a.size}; ++i) if (!isfinite(tmp{i}[i])) return SYMKF_ERR_NONFINITE;")
+            lines.append(f"  if (!symkf_finite(tmp{i}, {a.size})) return SYMKF_ERR_NONFINITE;")
     for i, a in enumerate(kernel.outputs[:-1]):
         if a.size:
             lines.append(f"  for (i = 0; i < {a.size}; ++i) {a.name}_out[i] = tmp{i}[i];")
     lines += ["  (void)i;", "  return (int) status;", "}", ""]
+    return "\n".join(lines)
+
+
+def _z_used(kernel: Kernel) -> str:
+    """The sanitised z as an ``_eval`` argument (a one-component z is passed by value)."""
+    return "z_used" if next(a.size for a in kernel.inputs if a.name == "z") > 1 else "z_used[0]"
+
+
+def _call_list(kernel: Kernel, value) -> list[str]:
+    """The argument list of a call of ``<kernel>_eval``: ``value(a)`` for each input passed, then the outputs."""
+    args = [value(a) for a in kernel.inputs if passing(a, kernel) != "omit"]
+    return args + [f"{a.name}_out" for a in kernel.outputs[:-1] if a.size]
+
+
+def _wrapper(model: str, kernel: Kernel, kernels: dict[str, Kernel]) -> str:
+    """The public function (inputs checked, then ``_eval``) and its binding entry ``_v``."""
+    sanitised = _sanitised_z(kernel)
+    lines = [_eval(model, kernel, kernels),
+             f"int {model}_{kernel.name}({', '.join(_param_list(kernel))}) {{", *_checks(kernel),
+             f"  return {model}_{kernel.name}_eval("
+             + ", ".join(_call_list(kernel, lambda a: _z_used(kernel) if sanitised and a.name == "z" else a.name)) + ");",
+             "}", ""]
     call = []
     for i, a in enumerate(kernel.inputs):
         how = passing(a, kernel)
@@ -425,25 +472,61 @@ def _step_argument(a: Arg, kernel: Kernel) -> str | None:
     return a.name
 
 
+def _run_address(a: Arg, kernel: Kernel) -> str:
+    """The address of input ``a``'s values in a run loop (step k's block of a per-step input)."""
+    if a.name in kernel.carried:
+        return f"{a.name}0"
+    if a.name in kernel.per_step:
+        return f"&{a.name}[k]" if a.size == 1 else f"{a.name} + (long) k * {a.size}"
+    return f"&{a.name}" if passing(a, kernel) == "value" else a.name
+
+
 def _run_loop(model: str, kernel: Kernel) -> str:
-    """``<kernel>_run``: the filter's time loop; a failed step keeps the state and records its code."""
+    """``<kernel>_run``: the filter's time loop; a failed step keeps the state and records its code.
+
+    The inputs that do not change along the run (parameters, noise, the initial state) are checked
+    once, the per-step ones (t, dt, z, ...) at each step: a state a step returns is finite (checked
+    on output) or the state it was given. The codes are those of step-by-step calls."""
     outputs = {a.name: a for a in kernel.outputs}
+    sanitised = _sanitised_z(kernel)
     lines = [f"int {model}_{kernel.name}_run({', '.join(_run_params(kernel))}) {{"]
     for name in kernel.carried:
         lines.append(f"  casadi_real {name}[{outputs[name].size}];")
     for a in kernel.outputs[:-1]:
         if a.name not in kernel.carried and a.size:
             lines.append(f"  casadi_real {a.name}_scratch[{a.size}];")
+    if sanitised:
+        lines.append(f"  casadi_real z_used[{next(a.size for a in kernel.inputs if a.name == 'z')}];")
+    fixed = [a.name for a in kernel.inputs if a.name not in kernel.per_step]
+    per_step = [a.name for a in kernel.inputs if a.name in kernel.per_step]
+    fixed_terms = _finite_terms(kernel, fixed, lambda a: _run_address(a, kernel)) or ["1"]
+    step_terms = _finite_terms(kernel, per_step, lambda a: _run_address(a, kernel)) or ["1"]
     lines += ["  int k, i, code, first_error = SYMKF_OK;",
-              "  if (n_steps < 0) return SYMKF_ERR_ARGS;"]
+              "  if (n_steps < 0) return SYMKF_ERR_ARGS;",
+              f"  const int fixed_finite = {' && '.join(fixed_terms)};"]
     for name in kernel.carried:
         lines.append(f"  for (i = 0; i < {outputs[name].size}; ++i) {name}[i] = {name}0[i];")
     lines.append("  for (k = 0; k < n_steps; ++k) {")
-    call_args = [e for e in (_step_argument(a, kernel) for a in kernel.inputs) if e is not None]
-    for a in kernel.outputs[:-1]:
-        if a.size:
-            call_args.append(a.name if a.name in kernel.carried else f"{a.name}_scratch")
-    lines.append(f"    code = {model}_{kernel.name}({', '.join(call_args)});")
+    lines.append("    code = SYMKF_ERR_NONFINITE;")
+    lines.append(f"    if (fixed_finite && {' && '.join(step_terms)}) {{")
+
+    def argument(a: Arg) -> str:
+        if sanitised and a.name == "z":
+            return _z_used(kernel)
+        return a.name if a.name in kernel.carried else _step_argument(a, kernel)
+    call = [argument(a) for a in kernel.inputs if passing(a, kernel) != "omit"]
+    call += [a.name if a.name in kernel.carried else f"{a.name}_scratch" for a in kernel.outputs[:-1] if a.size]
+    call_line = f"{model}_{kernel.name}_eval({', '.join(call)});"
+    if sanitised:
+        size = next(a.size for a in kernel.inputs if a.name == "z")
+        mask = next(a for a in kernel.inputs if a.name == "mask")
+        z_at = "z[k]" if size == 1 else "z[(long) k * {0} + i]".format(size)
+        mask_at = "mask[k]" if size == 1 else "mask[(long) k * {0} + i]".format(mask.size)
+        lines.append(f"      for (i = 0; i < {size}; ++i) z_used[i] = {mask_at} > (casadi_real) 0.5 ? {z_at} : (casadi_real) 0;")
+        lines.append(f"      if (symkf_finite(z_used, {size})) code = {call_line}")
+    else:
+        lines.append(f"      code = {call_line}")
+    lines.append("    }")
     lines.append("    status_hist[k] = code;")
     lines.append("    if (code != SYMKF_OK && code != SYMKF_GATED && first_error == SYMKF_OK) first_error = code;")
     for name in kernel.carried:
@@ -480,8 +563,10 @@ def api_unit(bundle: Bundle, content_hash: str) -> str:
              "/* ---------------- symkf wrappers: the public API ---------------- */",
              f'const char *{model}_content_hash(void) {{ return "{content_hash}"; }}',
              ""]
+    parts.append(FINITE_HELPER)
+    by_name = {k.name: k for k in bundle.kernels}
     for kernel in bundle.kernels:
-        parts.append(_wrapper(model, kernel))
+        parts.append(_wrapper(model, kernel, by_name))
         if kernel.runnable:
             parts.append(_run_loop(model, kernel))
     return ascii_text("\n".join(parts))

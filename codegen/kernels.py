@@ -208,12 +208,15 @@ class ModelFunctions:
             hargs, hnames = [ht, hx, hu, hp, hq], ["t", "x", "u", "p", "q"]
             self.h[name] = ca.Function(f"{prefix}_h_{name}", hargs, [z], hnames, ["z"], options)
             # z and H share the measurement's terms (trigonometry of the station and the state);
-            # H alone calls that function (one copy of the Jacobian's C)
-            both = ca.Function(f"{prefix}_h_and_jac_{name}", hargs, [z, ca.densify(ca.jacobian(z, hx))],
+            # H alone calls that function (one copy of the Jacobian's C). H keeps its structural
+            # zeros (a radar sees only the position states): the EKF update's products skip them,
+            # the same numbers as with explicit zeros (x + 0 y = x); jac_h is H densified.
+            both = ca.Function(f"{prefix}_h_and_jac_{name}", hargs, [z, ca.jacobian(z, hx)],
                                hnames, ["z", "H"], options)
             mx = [ca.MX.sym(n, *v.shape) for n, v in zip(hnames, hargs)]
             self.h_and_jac[name] = both
-            self.jac_h[name] = ca.Function(f"{prefix}_jac_h_{name}", mx, [both(*mx)[1]], hnames, ["H"], options)
+            self.jac_h[name] = ca.Function(f"{prefix}_jac_h_{name}", mx, [ca.densify(both(*mx)[1])], hnames, ["H"],
+                                           options)
 
     def for_filter(self, family: str) -> Propagation:
         """The propagation functions of one family, per the config's ``<family>_*`` keys."""
@@ -233,18 +236,20 @@ class ModelFunctions:
         def step(fd):
             return fd(t, dt, x, u, p, self.zero_w)
 
+        pattern = transition_pattern(step(branches.branches[0]), x)
+
         def transition(fd):
             if d.covariance == "jacobian":
-                return ca.densify(ca.jacobian(step(fd), x))
+                return on_pattern(ca.jacobian(step(fd), x), pattern)
             xdot = continuous_dynamics(model)(t, x, u, p, self.zero_w)     # Phi = I + A dt, A = df/dx at (t, x)
             return ca.SX.eye(model.nx) + ca.densify(ca.jacobian(xdot, x)) * dt
 
         # f_d and F together share the primal evaluation (the EKF prediction needs both); F alone
         # calls that function (one copy of the Jacobian's C)
         fd_and_jac = branches.function(f"{prefix}_fd_and_jac", args, names, lambda fd: [step(fd), transition(fd)],
-                                       ["x", "F"], options, **self._segment_calls(branches, d, prefix))
+                                       ["x", "F"], options, **self._segment_calls(branches, d, prefix, pattern))
         mx = [ca.MX.sym(n, *v.shape) for n, v in zip(names, args)]
-        jac_fd = ca.Function(f"{prefix}_jac_fd", mx, [fd_and_jac(*mx)[1]], names, ["F"], options)
+        jac_fd = ca.Function(f"{prefix}_jac_fd", mx, [ca.densify(fd_and_jac(*mx)[1])], names, ["F"], options)
         made = Propagation(
             branches.function(f"{prefix}_fd", args, names, lambda fd: [step(fd)], ["x"], options),
             ca.Function(f"{prefix}_fd_inline", args, [discrete_step(model, continuous_dynamics(model), *args, self.zero_w,
@@ -256,7 +261,7 @@ class ModelFunctions:
 
 
     @staticmethod
-    def _segment_calls(branches: EventBranches, d: Discretisation, prefix: str) -> dict:
+    def _segment_calls(branches: EventBranches, d: Discretisation, prefix: str, pattern: ca.Sparsity) -> dict:
         """For an exact Jacobian of a model with events: f_d and F of both branches from calls of
         one segment function and its time-capped twin (not inlined twice): the plain step is one
         segment over h = (t + dt) - t, the split step two, F = F2 F1 (chain rule: the same F up
@@ -264,7 +269,7 @@ class ModelFunctions:
         if d.covariance != "jacobian" or len(branches.branches) == 1 or branches.precision == "float":
             return {}       # (a float build's split step has its own part lengths: inlined as is)
         free, capped = branches.segment_functions(
-            f"{prefix}_segment_and_jac", lambda x_end, x: [x_end, ca.densify(ca.jacobian(x_end, x))], ["x", "F"],
+            f"{prefix}_segment_and_jac", lambda x_end, x: [x_end, on_pattern(ca.jacobian(x_end, x), pattern)], ["x", "F"],
             dict(FUNCTION_OPTIONS, never_inline=True))
 
         def plain(t, dt, x, u, p):
@@ -274,8 +279,24 @@ class ModelFunctions:
             h1, latest, cut, h2 = split_times(t, dt, branches.events)
             x_cut, F1 = capped.call([t, h1, latest, x, u, p])
             x_end, F2 = free.call([cut, h2, x_cut, u, p])
-            return [x_end, ca.mtimes(F2, F1)]
+            return [x_end, ca.project(ca.mtimes(F2, F1), pattern)]
         return {"plain": plain, "split": split}
+
+
+def transition_pattern(x_next: ca.SX, x: ca.SX) -> ca.Sparsity:
+    """The structural nonzeros of F = d f_d / d x that every event branch shares: those of one
+    step S and of two steps S S (a split step's F2 F1). A state nothing depends on (the launcher's
+    longitude) keeps F's column of the identity, and F P F^T skips its zeros (the same numbers as
+    with explicit zeros: x + 0 y = x)."""
+    S = ca.DM.ones(ca.jacobian_sparsity(x_next, x))
+    return (S + S @ S).sparsity()
+
+
+def on_pattern(J, pattern: ca.Sparsity):
+    """J on the shared ``pattern`` (explicit zeros where J has none); J must not reach outside it."""
+    if not J.sparsity().is_subset(pattern):
+        raise ValueError("a branch's Jacobian has nonzeros outside the pattern of one or two steps")
+    return ca.project(J, pattern)
 
 
 def noise_gain(model: Model) -> ca.Function:
@@ -416,7 +437,8 @@ def compose_step(name: str, predict: Kernel, update: Kernel) -> Kernel:
                            {"allow_duplicate_io_names": True})
     doc = f"{predict.doc.split(' (')[0]}; then {update.doc.replace(' at time t ', ' at t + dt ')} Both in one call."
     return Kernel(name, function, doc, tuple(inputs), update.outputs, carried=("x", "P"),
-                  per_step=tuple(a.name for a in inputs if a.name in ("t", "dt", "u", "q", "z", "mask")))
+                  per_step=tuple(a.name for a in inputs if a.name in ("t", "dt", "u", "q", "z", "mask")),
+                  parts=(predict.name, update.name))
 
 
 def update_status(ok: ca.SX, is_gated: ca.SX, inputs_finite: ca.SX) -> ca.SX:

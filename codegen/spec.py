@@ -53,6 +53,8 @@ class Kernel:
         carried: names of outputs that feed back into the same-named inputs in a run loop
             (e.g. ``("x", "P")``); empty for kernels that are not filter steps.
         per_step: names of inputs that change every step of a run (e.g. ``t``, ``z``).
+        parts: for a fused step (``compose_step``), the names of its predict and update kernels:
+            the C API calls those two (the step's own Function is their composition, for the VM).
     """
 
     name: str
@@ -62,6 +64,7 @@ class Kernel:
     outputs: tuple[Arg, ...]
     carried: tuple[str, ...] = ()
     per_step: tuple[str, ...] = ()
+    parts: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         f = self.function

@@ -207,6 +207,14 @@ int main(int argc, char **argv) {
 #: Parts of a step counted by ``--instructions``: the predict and update calls on their own,
 #: the fused step call, and a step inside the compiled run loop.
 PARTS = ("predict", "update", "step", "run")
+#: Exclusive instructions per call of the functions around the kernels (rows of the parts table):
+#: ``wrapper``, the public step function's own work (input checks, z masking, argument set-up,
+#: output checks and copies); ``composition``, the fused-step kernel that called predict and
+#: update before 12 (its copies and selections; the C API now calls the two itself); ``loop``,
+#: the run loop's own work per step (its per-step checks, the state history).
+SELF_COSTS = {"wrapper": ("step", ("{m}_{f}_step_radar", "{m}_{f}_step_radar_eval")),
+              "composition": ("step", ("{m}_k_{f}_step_radar", "{m}_k_{f}_step_radar_casadi_copy")),
+              "loop": ("run", ("{m}_{f}_step_radar_run",))}
 
 
 def time_c_loop(work: Workload, steps: int, instructions: bool = False, directory: Path | None = None) -> dict[str, dict]:
@@ -233,7 +241,10 @@ def time_c_loop(work: Workload, steps: int, instructions: bool = False, director
                 raise RuntimeError(f"c_loop: {family} step returned a failure code")
             out[family] = {"us_per_step": float(value)}
             if instructions and shutil.which("valgrind"):
-                parts = {part: _instructions_per_step(exe, family, part, stdin, Path(tmp)) for part in PARTS}
+                counts = {part: _instructions_per_step(exe, family, part, stdin, Path(tmp)) for part in PARTS}
+                parts = {part: total for part, (total, _) in counts.items()}
+                for row, (part, functions) in SELF_COSTS.items():
+                    parts[row] = sum(counts[part][1].get(f.format(m="launcher", f=family), 0) for f in functions)
                 out[family]["instructions_per_step"] = parts["step"]
                 out[family]["instructions_by_part"] = parts
     return out
@@ -249,17 +260,32 @@ def _c_loop_input(work: Workload) -> str:
     return "\n".join(lines)
 
 
-def _instructions_per_step(exe: Path, family: str, part: str, stdin: str, tmp: Path) -> float:
-    """Callgrind's instruction count of 1100 calls (steps) of ``part`` minus that of 100, per call:
-    the first 55 s of the flight at 20 Hz, no event inside (event steps are 4 in a flight)."""
-    def count(steps: int) -> int:
-        proc = subprocess.run(["valgrind", "--tool=callgrind", f"--callgrind-out-file={tmp}/callgrind.out",
+def _instructions_per_step(exe: Path, family: str, part: str, stdin: str, tmp: Path) -> tuple[float, dict]:
+    """Callgrind's instruction count of 1100 calls (steps) of ``part`` minus that of 100, per call
+    (the first 55 s of the flight at 20 Hz, no event inside: event steps are 4 in a flight), and
+    the same difference of each function's exclusive count (``callgrind_annotate``), per call."""
+    def count(steps: int) -> tuple[int, dict]:
+        out = tmp / f"callgrind.{steps}.out"
+        proc = subprocess.run(["valgrind", "--tool=callgrind", f"--callgrind-out-file={out}",
                                str(exe), family, str(steps), part], input=stdin, capture_output=True, text=True,
                               check=True)
         if int(proc.stdout.split()[1]):
             raise RuntimeError(f"c_loop: {family} {part} returned a failure code")
-        return int(re.search(r"Collected : (\d+)", proc.stderr).group(1))
-    return (count(1100) - count(100)) / 1000
+        return int(re.search(r"Collected : (\d+)", proc.stderr).group(1)), _exclusive_counts(out)
+    (many, by_many), (few, by_few) = count(1100), count(100)
+    return (many - few) / 1000, {name: (n - by_few.get(name, 0)) / 1000 for name, n in by_many.items()}
+
+
+def _exclusive_counts(callgrind_out: Path) -> dict[str, int]:
+    """Exclusive instruction count of each function in a callgrind output file (callgrind_annotate)."""
+    if not shutil.which("callgrind_annotate"):
+        return {}
+    text = subprocess.run(["callgrind_annotate", "--inclusive=no", "--threshold=100", str(callgrind_out)],
+                          capture_output=True, text=True).stdout
+    counts = {}
+    for number, name in re.findall(r"^\s*([\d,]+) \([^)]*\)\s+\S*?:(\w+)", text, re.M):
+        counts[name] = counts.get(name, 0) + int(number.replace(",", ""))
+    return counts
 
 
 def time_filterpy(model, family: str, work: Workload, steps: int) -> float | None:
@@ -339,6 +365,14 @@ INSTRUCTIONS_32A5243 = {
     "ekf": {"predict": 20431, "update": 7040, "step": 27289, "run": 27423},
     "ukf": {"predict": 65684, "update": 16991, "step": 82574, "run": 82710},
 }
+#: Main 2ce85cb (units per kernel at -O1, before issue 12's instruction cuts), counted by this
+#: harness on that commit's build.
+INSTRUCTIONS_2CE85CB = {
+    "ekf": {"predict": 12809, "update": 7204, "step": 20799, "run": 21036, "wrapper": 1513, "composition": 1722,
+            "loop": 250},
+    "ukf": {"predict": 35625, "update": 13053, "step": 49518, "run": 49754, "wrapper": 1521, "composition": 1732,
+            "loop": 251},
+}
 
 
 def targets(report: dict) -> dict:
@@ -354,18 +388,20 @@ def targets(report: dict) -> dict:
 
 def instruction_parts_table(report: dict) -> list[str]:
     """Instructions per call of each part (predict, update, fused step, a step inside the run
-    loop), 32a5243 and now, and the run loop's own cost (run - step)."""
+    loop) and of the code around the kernels (SELF_COSTS), on 32a5243, 2ce85cb and now."""
     parts = {r["filter"]: r["instructions_by_part"] for r in report["rows"] if "instructions_by_part" in r}
     if not parts:
         return []
-    lines = ["", f"{'instructions per call':<22}" + "".join(f"{f.upper() + ' ' + when:>14}" for f in FILTERS
-                                                            for when in ("32a5243", "now"))]
-    for part in PARTS:
-        lines.append(f"{part:<22}" + "".join(f"{INSTRUCTIONS_32A5243[f][part]:>14,.0f}{parts[f][part]:>14,.0f}"
-                                             for f in FILTERS))
-    lines.append(f"{'run loop (run - step)':<22}" + "".join(
-        f"{INSTRUCTIONS_32A5243[f]['run'] - INSTRUCTIONS_32A5243[f]['step']:>14,.0f}"
-        f"{parts[f]['run'] - parts[f]['step']:>14,.0f}" for f in FILTERS))
+    columns = (("32a5243", INSTRUCTIONS_32A5243), ("2ce85cb", INSTRUCTIONS_2CE85CB), ("now", parts))
+    lines = ["", f"{'instructions per call':<26}" + "".join(f"{f.upper() + ' ' + when:>13}" for f in FILTERS
+                                                            for when, _ in columns)]
+
+    def cell(value) -> str:
+        return f"{'-':>13}" if value is None else f"{value:>13,.0f}"
+    for part in (*PARTS, *SELF_COSTS):
+        label = {"wrapper": "step: wrapper, checks", "composition": "step: composition",
+                 "loop": "run: loop, checks"}.get(part, part)
+        lines.append(f"{label:<26}" + "".join(cell(figures[f].get(part)) for f in FILTERS for _, figures in columns))
     return lines
 
 
