@@ -334,8 +334,9 @@ def _sanitised_z(kernel: Kernel) -> bool:
 
 #: The API unit's finiteness test of an array (C's isfinite raises no floating-point exception).
 FINITE_HELPER = """static inline int symkf_finite(const casadi_real *v, int n) {
-  int i;
-  for (i = 0; i < n; ++i) if (!isfinite(v[i])) return 0;
+  int i = 0;
+  for (; i + 4 <= n; i += 4) if (!(isfinite(v[i]) && isfinite(v[i + 1]) && isfinite(v[i + 2]) && isfinite(v[i + 3]))) return 0;
+  for (; i < n; ++i) if (!isfinite(v[i])) return 0;
   return 1;
 }
 """
