@@ -117,14 +117,26 @@ PSD_TOLERANCE = 1e-9
 
 def psd_flag(A: ca.SX) -> ca.SX:
     """0/1 flag that the symmetric A is positive semi-definite: no negative (or NaN) variance and
-    a Cholesky factorisation of its correlation matrix D^-1/2 A D^-1/2 + tol I succeeds."""
+    a Cholesky factorisation of its correlation matrix D^-1/2 A D^-1/2 + tol I succeeds.
+
+    Computed as: the LDL^T pivots of A + tol diag(a) are all positive (a_i = A_ii, or 1 for a zero
+    variance). The same test: that matrix is D^1/2 (C + tol I) D^1/2 with D = diag(a), and a
+    congruence by a positive diagonal scales the j-th pivot by a_j, keeping its sign (no square
+    roots, no fmax; one division per pivot)."""
     n = A.shape[0]
-    diag_ok = ca.SX(1)
-    scale = []
+    ok, scale = ca.SX(1), []
     for i in range(n):
-        diag_ok = diag_ok * (A[i, i] >= 0) * (A[i, i] < ca.inf)
-        usable = (A[i, i] > 0) * (A[i, i] < ca.inf)        # else refused; 1 keeps D A D finite (trap-safe)
-        scale.append(1 / ca.sqrt(ca.fmax(guarded(A[i, i], usable), TINY)))
-    D = ca.diag(ca.vertcat(*scale))
-    _, ok = cholesky(D @ A @ D + PSD_TOLERANCE * ca.SX.eye(n))
-    return diag_ok * ok
+        ok = ok * (A[i, i] >= 0) * (A[i, i] < ca.inf)
+        usable = (A[i, i] > 0) * (A[i, i] < ca.inf)      # else refused (or a zero variance: scale 1)
+        scale.append(ca.if_else(usable, ca.if_else(A[i, i] > TINY, A[i, i], TINY), 1))
+    L, LD, d = {}, {}, []                              # LD[i, k] = L[i, k] d[k]
+    for j in range(n):
+        pivot = A[j, j] + PSD_TOLERANCE * scale[j] - sum((LD[j, k] * L[j, k] for k in range(j)), ca.SX(0))
+        usable = (pivot > 0) * (pivot < ca.inf)
+        ok = ok * usable
+        d.append(guarded(pivot, usable))
+        inverse = 1 / d[j]
+        for i in range(j + 1, n):
+            LD[i, j] = A[i, j] - sum((LD[i, k] * L[j, k] for k in range(j)), ca.SX(0))
+            L[i, j] = LD[i, j] * inverse
+    return ok

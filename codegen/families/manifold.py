@@ -284,7 +284,7 @@ class ManifoldFunctions:
             G = ca.substitute(G, w, ca.DM.zeros(w.shape[0]))
             self.held_noise_gain = ca.Function(f"{prefix}_held_noise_gain", [t, dt, x, u, p], [ca.densify(G)],
                                                ["t", "dt", "x", "u", "p"], ["G"], _INLINE)
-        self.h, self.jac_h, self.h_noisy, self.noise_jac = {}, {}, {}, {}
+        self.h, self.h_inline, self.jac_h, self.h_noisy, self.noise_jac = {}, {}, {}, {}, {}
         for name, meas in model.measurements.items():
             self._measurement(model, name, meas, t, x, u, p, delta, zero)
 
@@ -308,8 +308,9 @@ class ManifoldFunctions:
         r = self.chart.quaternion_local_linear(z, z_hat) if meas.quaternion else z
         H = ca.substitute(ca.jacobian(r, delta), delta, zero)
         self.jac_h[name] = ca.Function(f"{model.name}_manifold_jac_h_{name}", [t, x, u, p, q], [H],
-                                       ["t", "x", "u", "p", "q"], ["H"], _CALLED)
+                                       ["t", "x", "u", "p", "q"], ["H"], _INLINE)
         self.h[name] = h
+        self.h_inline[name] = inline
         if meas.v.shape[0]:
             v = ca.SX.sym("v", meas.v.shape[0])
             noisy = noisy_measurement_function(model, name)
@@ -479,21 +480,26 @@ def update_outputs(chart: Chart, update, x_old, P_old, msym, m: MeasurementInput
 
 # ---------------------------------------------------------------------- MEKF
 def mekf_update_expr(mf: ManifoldFunctions, ms: ManifoldSymbols, name: str, msym: dict, wrap, state=None):
-    """The MEKF update of x̂, P at t (the kernel's inputs, or ``state`` = (t, x, P) of a fused step,
-    whose P needs no PSD check of its own): batch or sequential (:class:`ManifoldOptions`)."""
+    """The MEKF update of x̂, P at t (the kernel's inputs), or of ``state`` = (t, x, P) of a fused
+    step: a predicted P, exactly symmetric, whose PSD and finiteness need no check of their own
+    (checked in the step's input; a result that overflows is refused by the wrapper's output check).
+    Batch or sequential (:class:`ManifoldOptions`)."""
     s = ms.base.sym
     t, x, P = state or (s["t"], s["x"], ms.sym["P"])
-    m = measurement_input(mf.model, ms, name, msym, checked=None if state is None else [x, P])
-    z_pred = mf.h[name](t, x, s["u"], s["p"], msym["q"])
+    m = measurement_input(mf.model, ms, name, msym, checked=None if state is None else [])
+    z_pred = mf.h_inline[name](t, x, s["u"], s["p"], msym["q"])
     H = ca.diag(m.mask) @ mf.jac_h[name](t, x, s["u"], s["p"], msym["q"])
-    R = masked_noise(mf.measurement_noise(name, msym["R"], t, x, s["u"], s["p"], msym["q"]), m.mask)
     y = chart_innovation(mf, name, m, z_pred, wrap)
     HPH = linalg.sandwich(H, P)                      # sparse H: structural zeros cost nothing
-    S = linalg.symmetric(R.shape[0], lambda i, j: HPH[i, j] + linalg.symmetric_part(R, i, j))
     if _sequential(mf, name):
-        correction, P_new, nis, ok = sequential_update(H, P, y, R)
-        m.valid = diagonal_flag(R)
+        # R must be diagonal (else SYMKF_ERR_ARGS, outputs not written): its masked diagonal only
+        r = [msym["R"][i, i] * m.mask[i] * m.mask[i] + (1 - m.mask[i]) for i in range(H.shape[0])]
+        S = linalg.symmetric(len(r), lambda i, j: HPH[i, j] + (r[i] if i == j else 0))
+        correction, P_new, nis, ok = sequential_update(H, P, y, r, symmetric=state is not None)
+        m.valid = diagonal_flag(msym["R"])
     else:
+        R = masked_noise(mf.measurement_noise(name, msym["R"], t, x, s["u"], s["p"], msym["q"]), m.mask)
+        S = linalg.symmetric(R.shape[0], lambda i, j: HPH[i, j] + linalg.symmetric_part(R, i, j))
         correction, P_new, nis, ok = batch_update(H, P, y, S)
     ok = ok if state is not None else ok * linalg.psd_flag(P)
     x_new = mf.retract(x, correction)               # multiplicative reset
@@ -516,20 +522,21 @@ def batch_update(H, P, y, S):
     return U.T @ white, P_new, ca.sumsqr(white), ok
 
 
-def sequential_update(H, P, y, R):
+def sequential_update(H, P, y, r, symmetric: bool = False):
     """The same update as :func:`batch_update` for a diagonal R, as m scalar updates in turn
     (Maybeck, "Stochastic Models, Estimation and Control" Vol. 1, 1979, sec. 7.7; exact in exact
     arithmetic, both linearised at the prior): per component i, with the correction δ so far,
     s_i = hᵢ P hᵢᵀ + R_ii, k = P hᵢᵀ / s_i, δ += k (y_i - hᵢ δ), P -= k (P hᵢᵀ)ᵀ (lower triangle).
     The s_i are the pivots of S = H P Hᵀ + R (its LDLᵀ), so all s_i > 0 is the batch's Cholesky
-    flag, and Σ (y_i - hᵢ δ)² / s_i = yᵀ S⁻¹ y. A masked row (hᵢ = 0, y_i = 0, R_ii = 1) changes nothing."""
+    flag, and Σ (y_i - hᵢ δ)² / s_i = yᵀ S⁻¹ y. A masked row (hᵢ = 0, y_i = 0, r_i = 1) changes nothing.
+    ``r``: the diagonal of R; ``symmetric``: P is exactly symmetric (else its symmetric part is used)."""
     n = P.shape[0]
-    P = linalg.symmetric(n, lambda i, j: linalg.symmetric_part(P, i, j))
+    P = P if symmetric else linalg.symmetric(n, lambda i, j: linalg.symmetric_part(P, i, j))
     delta, nis, ok = ca.SX.zeros(n), ca.SX(0), ca.SX(1)
     for i in range(H.shape[0]):
         h = H[i, :]
         Ph = P @ h.T
-        s = ca.dot(h.T, Ph) + R[i, i]
+        s = ca.dot(h.T, Ph) + r[i]
         usable = (s > 0) * (s < ca.inf)
         ok = ok * usable
         inverse = 1 / linalg.guarded(s, usable)
@@ -542,12 +549,12 @@ def sequential_update(H, P, y, R):
 
 
 def diagonal_flag(R) -> ca.SX:
-    """1 if every off-diagonal entry of R is 0 (a sequential update needs uncorrelated components)."""
+    """1 if the symmetric part of R (the one a batch update uses) is diagonal, else 0: a sequential
+    update needs uncorrelated components."""
     flag = ca.SX(1)
     for i in range(R.shape[0]):
-        for j in range(R.shape[1]):
-            if i != j:
-                flag = flag * (R[i, j] == 0)
+        for j in range(i):
+            flag = flag * (R[i, j] + R[j, i] == 0)
     return flag
 
 

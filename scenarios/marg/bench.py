@@ -1,6 +1,6 @@
 """Timing and accuracy of the gradient-descent MARG filter (paper 001) on the BROAD trials.
 
-    symkf bench marg [--json] [--repeats 5]
+    symkf bench marg [--json] [--repeats 5] [--instructions]
 
 - Build: seconds to generate and compile the ``marg`` bundle from scratch (temporary build dir).
 - µs per sample (medians over repeats) for the simplified (31) and full (26)-(30) 9-axis forms:
@@ -14,6 +14,8 @@
   ``step_bound`` (the bound C step, buffers filled), ``step_api`` (``Filter.step`` with its
   contract checks), ``step_api_python`` (as above) and ``run`` (``Filter.run`` over the whole
   trial: contract checks, masks and the C loop); its BROAD RMSE per trial.
+- ``--instructions``: the MEKF's C API per sample under callgrind (deterministic; predict, update,
+  step and run, and the step kernel's share of the run: ``scenarios/marg/instructions.py``).
 - RMSE per BROAD trial (total / heading / inclination over movement phases, deg) at β = 0.041
   (Madgwick's suggested gain) and at the best β of a log sweep (grid of ``compare_marg`` plus 0.041), for both forms.
 """
@@ -34,6 +36,7 @@ from symkf.scenarios.report import emit
 from symkf.scenarios.marg.data import data_dir, load_recording, run_recording
 from symkf.scenarios.marg.metric import broad_errors
 from . import ekf
+from .instructions import count_instructions
 from .compare import SWEEP_BETAS
 
 FORMS = ("simple", "full")
@@ -45,6 +48,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--step-samples", type=int, default=20000, help="samples timed per step repeat")
     parser.add_argument("--reference-samples", type=int, default=2000)
     parser.add_argument("--out", type=Path, default=None, help="also write the JSON here")
+    parser.add_argument("--instructions", action="store_true",
+                        help="also count the MEKF's instructions per sample in C (callgrind; about a minute)")
 
 
 def _median_seconds(function, repeats: int) -> float:
@@ -172,6 +177,8 @@ def run(args) -> int:
         result["timing_us_per_sample"][form] = time_form(compiled, first, form, args)
     mekf = load("marg_ekf", backend="compiled")
     result["timing_us_per_sample"]["mekf"] = time_mekf(mekf, first, args)
+    if getattr(args, "instructions", False):
+        result["mekf_instructions_per_sample"] = count_instructions(build_model("marg_ekf").directory, first)
     result["mekf_rmse_deg"] = {}
     for path in trials:
         recording = first if path == trials[0] else load_recording(path)
@@ -191,6 +198,14 @@ def _print_tables(result: dict) -> None:
                      if "numpy_reference_us" in t else f"{'-':>10} {'-':>8}")
         print(f"{form:8} {t['step_bound_us']:13.3f} {t['step_api_us']:11.2f} {t['step_api_python_us']:14.2f} "
               f"{t['run_us']:8.3f} {reference}")
+    counts = result.get("mekf_instructions_per_sample")
+    if counts:
+        print(f"\nmekf instructions per sample (callgrind, {result['timing_trial']}, C API): "
+              + ", ".join(f"{part} {counts[part]:.0f}" for part in ("predict", "update", "step", "run"))
+              + f"; run's step kernel {counts['run_kernel']:.0f}, wrapper checks and copies "
+              f"{counts['run'] - counts['run_kernel']:.0f}")
+    elif "mekf_instructions_per_sample" in result:
+        print("\nmekf instructions per sample: valgrind not found")
     print("\nBROAD RMSE total/heading/inclination [deg], movement phases:")
     for trial, forms in result["rmse_deg"].items():
         for form, r in forms.items():

@@ -1,0 +1,129 @@
+"""Instructions per sample of the generated MARG MEKF in C (callgrind; deterministic, unlike wall
+time on a shared machine): ``symkf bench marg --instructions``.
+
+A small C program (compiled against the bundle's library with its flags) feeds a BROAD trial's
+samples to one part of the filter's C API:
+
+- ``predict``: ``marg_ekf_mekf_predict`` per sample (its wrapper's checks included);
+- ``update``: ``marg_ekf_mekf_update_marg`` per sample (the same);
+- ``step``: ``marg_ekf_mekf_step_marg``, predict + update in one call;
+- ``run``: ``marg_ekf_mekf_step_marg_run`` over the samples (the loop in C).
+
+Each part is counted over 3000 and over 1000 samples; the difference / 2000 is its cost per
+sample without start-up. For ``run`` the kernel's own share (callgrind's inclusive count of
+``marg_ekf_k_mekf_step_marg``) is reported too: the rest is the wrapper's checks and copies.
+"""
+from __future__ import annotations
+
+import json
+import re
+import shutil
+import subprocess
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from symkf.codegen.build import compiler
+from symkf.models import marg_ekf
+from . import ekf
+
+PARTS = ("predict", "update", "step", "run")
+SAMPLES = (1000, 3000)
+
+C_DRIVER = r"""
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include "marg_ekf.h"
+/* driver PART N < samples.bin: N samples of the BROAD trial through one part of the MEKF's API */
+enum { HEAD = 7 + 36 + 36 + 49 + 7, ROW = 22 };
+int main(int argc, char **argv) {
+  double head[HEAD], *rows, x[7], P[36], y[7], S[49], *xh, *Ph;
+  int n, k, code = 0, *status;
+  if (argc != 3 || fread(head, sizeof(double), HEAD, stdin) != HEAD) return 2;
+  n = atoi(argv[2]);
+  rows = malloc(sizeof(double) * ROW * (size_t) n);
+  if (!rows || fread(rows, sizeof(double), ROW * (size_t) n, stdin) != ROW * (size_t) n) return 3;
+  memcpy(x, head, sizeof x); memcpy(P, head + 7, sizeof P);
+  if (!strcmp(argv[1], "run")) {
+    double *t = malloc(8 * (size_t) n), *dt = malloc(8 * (size_t) n), *u = malloc(24 * (size_t) n),
+           *q = malloc(24 * (size_t) n), *z = malloc(56 * (size_t) n), *mask = malloc(56 * (size_t) n);
+    xh = malloc(56 * (size_t) n); Ph = malloc(288 * (size_t) n); status = malloc(sizeof(int) * (size_t) n);
+    for (k = 0; k < n; ++k) {
+      const double *r = rows + ROW * k;
+      t[k] = r[0]; dt[k] = r[1]; memcpy(u + 3 * k, r + 2, 24); memcpy(q + 3 * k, r + 5, 24);
+      memcpy(z + 7 * k, r + 8, 56); memcpy(mask + 7 * k, r + 15, 56);
+    }
+    code = marg_ekf_mekf_step_marg_run(n, t, dt, x, P, u, head + 43, q, z, mask, head + 79, head + 128, xh, Ph, status);
+  } else {
+    for (k = 0; k < n && (code == 0 || code == SYMKF_GATED); ++k) {
+      const double *r = rows + ROW * k;
+      if (!strcmp(argv[1], "predict"))
+        code = marg_ekf_mekf_predict(r[0], r[1], x, P, r + 2, head + 43, x, P);
+      else if (!strcmp(argv[1], "update"))
+        code = marg_ekf_mekf_update_marg(r[0], x, P, r + 2, r + 5, r + 8, r + 15, head + 79, head + 128, x, P, y, S);
+      else
+        code = marg_ekf_mekf_step_marg(r[0], r[1], x, P, r + 2, head + 43, r + 5, r + 8, r + 15, head + 79,
+                                       head + 128, x, P, y, S);
+    }
+  }
+  printf("%d\n", code);
+  return 0;
+}
+"""
+
+
+def count_instructions(directory: Path, recording) -> dict:
+    """{part: instructions per sample} and ``run_kernel`` (the step kernel's share inside the run)."""
+    if shutil.which("valgrind") is None:
+        return {}
+    manifest = json.loads((directory / "manifest.json").read_text())
+    with tempfile.TemporaryDirectory() as tmp:
+        exe = Path(tmp) / "mekf_driver"
+        (Path(tmp) / "driver.c").write_text(C_DRIVER)
+        subprocess.run(compiler().split() + ["-std=c99", *manifest["optimization"].split(), f"-I{directory}",
+                                             "-o", str(exe), str(Path(tmp) / "driver.c"),
+                                             str(directory / manifest["hashed_library"]), "-lm"],
+                       check=True, capture_output=True, text=True)
+        data = _driver_input(recording, max(SAMPLES))
+        out = {}
+        for part in PARTS:
+            counts = [_callgrind(exe, part, n, data, Path(tmp)) for n in SAMPLES]
+            out[part] = (counts[1][0] - counts[0][0]) / (SAMPLES[1] - SAMPLES[0])
+            if part == "run":
+                out["run_kernel"] = (counts[1][1] - counts[0][1]) / (SAMPLES[1] - SAMPLES[0])
+        return out
+
+
+def _driver_input(recording, count: int) -> bytes:
+    n = min(count, len(recording))
+    x0 = np.r_[ekf.initial_orientation(recording.acc[0], recording.mag[0]), np.zeros(3)]
+    P0 = np.diag(ekf.INITIAL_SIGMA ** 2)
+    sigma = [marg_ekf.ACC_DIRECTION_SIGMA] * 3 + [marg_ekf.HEADING_SIGMA] + [marg_ekf.REST_GYRO_SIGMA] * 3
+    head = np.concatenate([x0, P0.ravel("F"), marg_ekf.process_noise_psd().ravel("F"),
+                           np.diag(np.square(sigma)).ravel("F"), np.zeros(7)])
+    times = recording.time[:n]
+    t, dt = np.concatenate([times[:1], times[:-1]]), np.diff(times, prepend=times[:1])
+    mask = ekf.masks(recording)[:n]
+    z = np.where(mask > 0.5, ekf.measurements(recording)[:n], 0.0)
+    rows = np.column_stack([t, dt, recording.gyro[:n], recording.mag[:n], z, mask])
+    return np.concatenate([head, rows.ravel()]).astype("<f8").tobytes()
+
+
+def _callgrind(exe: Path, part: str, n: int, data: bytes, tmp: Path) -> tuple[int, int]:
+    """(all instructions, inclusive instructions of the step kernel) of one driver run."""
+    out = tmp / f"cg.{part}.{n}"
+    proc = subprocess.run(["valgrind", "--tool=callgrind", f"--callgrind-out-file={out}", str(exe), part, str(n)],
+                          input=data, capture_output=True, check=True)
+    if int(proc.stdout.split()[0]) not in (0, 6):
+        raise RuntimeError(f"mekf driver: {part} returned code {proc.stdout.decode().strip()}")
+    total = int(re.search(rb"Collected : (\d+)", proc.stderr).group(1))
+    annotated = subprocess.run(["callgrind_annotate", "--inclusive=yes", str(out)], capture_output=True,
+                               text=True).stdout
+    kernel = 0
+    for line in annotated.splitlines():
+        match = re.match(r"\s*([\d,]+)\s.*\bmarg_ekf_k_mekf_step_marg\s", line + " ")
+        if match:
+            kernel = max(kernel, int(match.group(1).replace(",", "")))
+    return total, kernel
