@@ -272,8 +272,7 @@ class ManifoldFunctions:
         # F and H at δ = 0 through the first-order chart (same derivatives, far fewer operations),
         # sparse: structural zeros (e.g. a bias that does not depend on the attitude) cost nothing
         zero = ca.DM.zeros(ne)
-        moved = chart.local_linear(chart.project(fd(t, dt, chart.retract_linear(x, delta), u, p)), step)
-        F = ca.substitute(ca.jacobian(moved, delta), delta, zero)
+        F = self._transition(fd(t, dt, x, u, p), fd(t, dt, chart.retract_linear(x, delta), u, p), step, delta)
         self.step_and_jac = ca.Function(f"{prefix}_manifold_fd_and_jac", [t, dt, x, u, p], [step, F],
                                         ["t", "dt", "x", "u", "p"], ["x", "F"], _INLINE)
         # ∂(x ⊟ x̂)/∂x at x = x̂ (n_e x n): maps state-space noise into error coordinates
@@ -287,6 +286,16 @@ class ManifoldFunctions:
         self.h, self.h_inline, self.jac_h, self.h_noisy, self.noise_jac = {}, {}, {}, {}, {}
         for name, meas in model.measurements.items():
             self._measurement(model, name, meas, t, x, u, p, delta, zero)
+
+    def _transition(self, v, moved, step, delta) -> ca.SX:
+        """F = ∂/∂δ [local_linear(project(f_d(x̂ ⊞ δ)), x̂⁺)] at δ = 0, x̂⁺ = project(v), v = f_d(x̂).
+        The projection is not differentiated: local_linear(·, x̂⁺) is linear and maps x̂⁺'s own
+        direction to 0, so through q / |q| its derivative is its own divided by |v_q| (each
+        quaternion's rows); the same F to round-off, without the derivative of the norm."""
+        F = ca.substitute(ca.jacobian(self.chart.local_linear(moved, step), delta), delta, ca.DM.zeros(delta.shape[0]))
+        for i, e in self.chart.quaternions:
+            F[e:e + 3, :] = F[e:e + 3, :] / ca.norm_2(v[i:i + 4])
+        return F
 
     def _noisy_step(self, model: Model, fns: ModelFunctions) -> ca.Function | None:
         """f_d(t, dt, x, u, p, w) with the noises held over the step (exact step or RK4), or None."""
