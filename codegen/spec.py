@@ -17,7 +17,8 @@ STATUS_CODES = {
     2: ("SYMKF_ERR_NOT_PD", "a covariance (P, or the innovation covariance S) is not positive definite"),
     3: ("SYMKF_ERR_NONFINITE", "an input or result is NaN or infinite"),
     4: ("SYMKF_ERR_DOMAIN", "an argument is outside the domain of the equations (e.g. |dp| >= 1 or n + kappa <= 0)"),
-    5: ("SYMKF_ERR_ARGS", "a bad argument (e.g. a negative step count)"),
+    5: ("SYMKF_ERR_ARGS", "a bad argument (e.g. a negative step count, or an R with correlations for an update "
+        "that is sequential: manifold_update=\"sequential\" needs a diagonal R)"),
     6: ("SYMKF_GATED", "the innovation failed the chi-square gate (y^T S^-1 y > gate); the update was skipped"),
 }
 STATUS_OK, STATUS_EVAL, STATUS_NOT_PD, STATUS_NONFINITE, STATUS_DOMAIN, STATUS_ARGS, STATUS_GATED = range(7)
