@@ -68,9 +68,8 @@ from symkf.models.base import Model
 from .. import linalg
 from ..discretize import (FUNCTION_OPTIONS, discrete_dynamics, exact_step_function, measurement_function,
                           noisy_measurement_function)
-from ..kernels import (CANONICAL_ORDER, ModelFunctions, Symbols, all_finite, compose_step, filter_spec, innovation,
-                       make_kernel,
-                       masked_finite, masked_noise, register_family, update_status, gated)
+from ..kernels import (CANONICAL_ORDER, ModelFunctions, Symbols, all_finite, compose_step, filter_spec, gated,
+                       innovation, make_kernel, masked_finite, masked_noise, register_family, update_status)
 from ..spec import (STATUS_ARGS, STATUS_DOMAIN, STATUS_NONFINITE, STATUS_NOT_PD, Arg, CodegenConfig, ConfigError, Family,
                    Kernel, register_options)
 from .kalman import UPDATE_INPUTS, _angle_difference, _predict_doc, _weighted_mean, noise_symbols, sigma_points
@@ -491,7 +490,8 @@ def update_outputs(chart: Chart, update, x_old, P_old, msym, m: MeasurementInput
 def mekf_update_expr(mf: ManifoldFunctions, ms: ManifoldSymbols, name: str, msym: dict, wrap, state=None):
     """The MEKF update of x̂, P at t (the kernel's inputs), or of ``state`` = (t, x, P) of a fused
     step: a predicted P, exactly symmetric, whose PSD and finiteness need no check of their own
-    (checked in the step's input; a result that overflows is refused by the wrapper's output check).
+    (checked in the step's input; a result that overflows is refused by the backends' output
+    checks; if the prediction failed, the step's outputs are its inputs and y, S are not read).
     Batch or sequential (:class:`ManifoldOptions`)."""
     s = ms.base.sym
     t, x, P = state or (s["t"], s["x"], ms.sym["P"])
