@@ -1,12 +1,13 @@
 """The build lifecycle: generate -> compile -> install, keyed by a hash of what is generated.
 
-``build_model(model)`` writes ``<root>/<folder>/`` = the C units (``<name>_api.c`` and one
-``<name>_k_<kernel>.c`` per kernel), ``<name>.h``, ``Makefile``, ``manifest.json`` and
-``lib<name>.so``, where ``<folder>`` is the model's name for its default codegen configuration
+``build_model(model)`` writes ``<root>/<folder>/`` = the C units (``<name>_api.c``,
+``<name>_hash.c``, one ``<name>_k_<kernel>.c`` per kernel and one ``<name>_fn_<function>.c`` per
+function the kernels call), ``<name>.h``, ``Makefile``, ``manifest.json`` and ``lib<name>.so``, where ``<folder>`` is the model's name for its default codegen configuration
 and ``<name>-<cfg8>`` for any other, so switching options back and forth does not rebuild. The
 library is compiled from exactly these units (one compiler per core), each object cached in
-``<root>/.objects`` by the hash of the compiler, flags and the unit's text (and the header it
-includes), so an edit of the dynamics recompiles the kernels that contain the dynamics only.
+``<root>/.objects`` by the hash of the compiler, flags and the unit's text (the preprocessor's
+output for the units that include the header), so an edit of the dynamics recompiles the
+functions that evaluate the dynamics only.
 
 The content hash covers exactly what determines the library: the model's serialized CasADi
 Functions (f and every h), its description (symbols, units, sigmas, wrap flags, defaults), the
@@ -232,8 +233,13 @@ def content_hash(model: Model, config: CodegenConfig, cc: str, generated: str | 
 # ---------------------------------------------------------------------- generate
 def generate(model, config: CodegenConfig | None = None) -> Bundle:
     """Model -> kernels (CasADi Functions) for every filter family the model asks for."""
-    config = config or default_config(get_model(model))
-    model = model_for(get_model(model), config)
+    model = get_model(model)
+    return _generate(model, config or default_config(model))
+
+
+def _generate(model: Model, config: CodegenConfig) -> Bundle:
+    """:func:`generate` of a model already validated (by :func:`build_model`)."""
+    model = model_for(model, config)
     symbols, functions = Symbols(model), ModelFunctions(model, config)
     kernels, filters = model_kernels(model, symbols, functions), []
     for family in model.filters:
@@ -348,7 +354,7 @@ def build_model(model, force: bool = False, **overrides) -> BuildResult:
         staging = Path(tempfile.mkdtemp(prefix=f".{directory.name}.tmp-", dir=root))
         try:
             mark = time.perf_counter()
-            bundle = generate(model, config)
+            bundle = _generate(model, config)
             timings["generate"] = time.perf_counter() - mark
             write_bundle(bundle, staging, key, generated, cc)
             timings["write"] = time.perf_counter() - mark - timings["generate"]
@@ -430,12 +436,24 @@ def compile_bundle(directory: Path, name: str, cc: str, config: CodegenConfig) -
     return compiled
 
 
-def _unit_key(identity: str, directory: Path, file: str, header: str) -> str:
-    """Hash of what determines a unit's object: compiler, flags, its text and the header it includes."""
-    text = (directory / file).read_text()
-    if f'#include "{header}"' in text:
-        text += (directory / header).read_text()
-    return hashlib.sha256((identity + text).encode()).hexdigest()[:32]
+def _unit_keys(directory: Path, cc: str, identity: str, sources: list[str], header: str) -> dict[str, str]:
+    """Hash of what determines each unit's object: compiler, flags and its text. A unit that
+    includes the header (the API and hash units) is hashed as the preprocessor's output (``cc -E``,
+    line markers kept), so the header's comments, the content hash it quotes and the macros the
+    unit does not use (a model constant, a default) do not recompile it."""
+    including = [file for file in sources if f'#include "{header}"' in (directory / file).read_text()]
+    flags = [arg for arg in json.loads(identity)[1] if arg not in c_writer.STACK_FLAGS.split()]
+    commands = [cc.split() + flags + ["-E", "-o", file[:-2] + ".i", file] for file in including]
+    for cmd, (returncode, stderr) in zip(commands, run_compilers(commands, directory)):
+        if returncode != 0:
+            raise BuildError(f"preprocessing {cmd[-1]} failed ({' '.join(cmd)}):\n{stderr[-4000:]}")
+    keys = {}
+    for file in sources:
+        text = (directory / (file[:-2] + ".i" if file in including else file)).read_text()
+        keys[file] = hashlib.sha256((identity + text).encode()).hexdigest()[:32]
+    for file in including:
+        (directory / (file[:-2] + ".i")).unlink()
+    return keys
 
 
 def _compile_units(directory: Path, cc: str, flags: list[str], sources: list[str],
@@ -443,17 +461,18 @@ def _compile_units(directory: Path, cc: str, flags: list[str], sources: list[str
     """Compile each unit to an object (and its call graph, with the stack flags), reusing cached
     ones from ``<root>/.objects``; returns the object paths in ``directory`` and the units compiled.
 
-    A cache entry ``<key>.o`` (+ ``<key>.ci``) is named by :func:`_unit_key` (what determines the
+    A cache entry ``<key>.o`` (+ ``<key>.ci``) is named by :func:`_unit_keys` (what determines the
     object) and vouched for by ``<key>.sum``, the SHA-256 of its files, written last: an entry
     whose copied files do not match their sums (damaged, replaced, half written) is recompiled."""
     cache = directory.parent / ".objects"
     cache.mkdir(exist_ok=True)
     identity = json.dumps([compiler_identity(cc), flags])
     suffixes = (".o", ".ci") if c_writer.STACK_FLAGS.split()[-1] in flags else (".o",)
+    keys = _unit_keys(directory, cc, identity, sources, header)
     todo, objects = [], []
     for file in sources:
         obj = directory / (file[:-2] + ".o")
-        cached = cache / _unit_key(identity, directory, file, header)
+        cached = cache / keys[file]
         objects.append(obj)
         if not _reuse(cached, obj, suffixes):
             todo.append((cc.split() + flags + ["-c", "-o", obj.name, file], obj, cached,

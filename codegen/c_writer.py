@@ -1,12 +1,15 @@
 """Bundle -> C99 translation units, header, Makefile (the flight bundle is what Python loads).
 
-The bundle is one translation unit per kernel, ``<model>_k_<kernel>.c`` (CasADi's code of that
-kernel, every helper ``static``), plus ``<model>_api.c`` with the documented API below, and
-``<model>.h``. A kernel that calls another kernel (a filter step calls its predict and update)
-calls that kernel's unit instead of carrying a second copy of its code, so a dynamics edit
-recompiles the dynamics' kernels only and the units compile in parallel. Kernel units include
-nothing of ours (their text is all that determines their object); their entry points are
-``SYMKF_INTERNAL`` (hidden: ``nm -D lib<model>.so`` lists only the header's API). For each kernel:
+The bundle is one translation unit per CasADi function: ``<model>_k_<kernel>.c`` per kernel and
+``<model>_fn_<name>.c`` per function the kernels call (f_d and its Jacobian, h, sigma-point
+propagation, ...), each CasADi's code of that one function (every helper ``static``); plus
+``<model>_api.c`` with the documented API below, ``<model>_hash.c`` (the content hash, alone
+because every build changes it) and ``<model>.h``. A function is defined once and declared where
+it is called (a filter step calls its predict and update units, both predicts call f_d's), so an
+edit recompiles only the functions whose code changed (:func:`function_units`) and the units
+compile in parallel. Function units include nothing of ours (their text is all that determines
+their object); their entry points are ``SYMKF_INTERNAL`` (hidden: ``nm -D lib<model>.so`` lists
+only the header's API). For each kernel:
 
 - ``int <model>_<kernel>(inputs..., outputs...)``: the public function. Scalar inputs (t, dt,
   kappa, a one-component mask) are passed by value, arrays as ``const casadi_real name[size]``,
@@ -29,6 +32,7 @@ its worst call path across the units).
 from __future__ import annotations
 
 import ast
+import hashlib
 import re
 from collections import Counter
 import tokenize
@@ -108,56 +112,206 @@ def api_file(model: str) -> str:
     return f"{model}_api.c"
 
 
-def kernel_unit(bundle: Bundle, kernel: Kernel) -> str:
-    """One kernel's self-contained translation unit: CasADi's code of the kernel, with the other
-    kernels it calls (a step's predict and update) declared and called in their own units."""
+def hash_file(model: str) -> str:
+    return f"{model}_hash.c"
+
+
+def function_symbol(model: str, name: str) -> str:
+    """The C symbol of CasADi function ``name``: a kernel's (``<model>_k_<kernel>``) as is, any other
+    ``<model>_<rest>`` as ``<model>_fn_<rest>`` (the API's ``<model>_<kernel>`` is taken: e.g. the
+    kernel ``fd`` is ``<model>_fd`` and the function f_d it calls ``<model>_fn_fd``)."""
+    return name if name.startswith(f"{model}_k_") else f"{model}_fn_{name[len(model) + 1:]}"
+
+
+def function_units(bundle: Bundle) -> dict[str, str]:
+    """CasADi's code of the kernels, one translation unit per function: each kernel and each
+    function the kernels call (f_d, its Jacobian, h, ...) is defined once, in ``<symbol>.c``,
+    and declared where it is called, so an edit recompiles the functions whose code changed
+    only (a dynamics edit: the functions that evaluate f; not the filter algebra that calls them).
+
+    All of it comes from one CasADi code generator over every kernel; each unit receives its
+    function, the static helpers and tables that function uses (renumbered in order of use, so
+    a unit's text depends on its function alone) and the prototypes of the functions it calls.
+    A function without the model's prefix, or two different functions of one name, stay static
+    copies in each unit that uses them."""
     model = bundle.model_name
-    others = {raw_name(model, k) for k in bundle.kernels} - {raw_name(model, kernel)}
-    code = casadi_source(Bundle(model, [kernel], bundle.config, bundle.description),
-                         prefix=f"{raw_name(model, kernel)}_casadi", external=others)
-    return ascii_text("\n".join([
-        f"/* {GENERATED_NOTICE.format(model=model)}",
-        f" * Kernel {kernel.name}: {kernel.doc}",
-        f" * Its entry point {raw_name(model, kernel)} is called by {api_file(model)}; see {model}.h. */",
-        "#include <math.h>", "", *_precision_lines(bundle), REAL_BLOCK, "", math_block(), "", INTERNAL_BLOCK, "",
-        code]))
+    code = CasadiCode.of(bundle)
+    symbols, units = code.unit_symbols(model), {}
+    for number, symbol in symbols.items():
+        if f"{symbol}.c" in units:                   # the same function under a second number
+            continue
+        name = code.names[number]
+        kernel = next((k for k in bundle.kernels if k.function.name() == name), None)
+        about = (f" * Kernel {kernel.name}: {kernel.doc}\n * Its entry point {symbol} is called by {api_file(model)};"
+                 f" see {model}.h. */" if kernel else
+                 f" * {code.signatures[number]}: called by the kernels' units (CasADi's code). */")
+        units[f"{symbol}.c"] = ascii_text("\n".join([
+            f"/* {GENERATED_NOTICE.format(model=model)}", about,
+            "#include <math.h>", "", *_precision_lines(bundle), REAL_BLOCK, "", math_block(), "", INTERNAL_BLOCK, "",
+            code.unit(number, symbols)]))
+    return units
 
 
-def casadi_source(bundle: Bundle, prefix: str | None = None, external: set[str] = frozenset()) -> str:
-    """CasADi's generated code for the bundle's kernels: warning-free under -Wall -Wextra, every
-    helper ``static`` (CasADi's reflection functions -- n_in, sparsity_in, incref... -- are
-    dropped), each kernel's entry point ``SYMKF_INTERNAL``, math calls through SYMKF_<NAME>
-    macros and literals typed as casadi_real.
+#: A numbered symbol of CasADi's code: a function (casadi_f3), a sparsity table (casadi_s2), ...
+_NUMBERED = re.compile(r"\bcasadi_[a-z]+\d+\b")
+_PREFIX_DEFINE = re.compile(r"^#define (casadi_\w+) CASADI_PREFIX\(\w+\)$")
+#: Macros of CasADi's preamble a unit carries only if its code uses them.
+_OPTIONAL_MACROS = ("casadi_to_int", "casadi_inf", "CASADI_CAST", "CASADI_SYMBOL_EXPORT")
+_OPTIONAL_USE = re.compile(r"\b(" + "|".join(_OPTIONAL_MACROS) + r")\b")
 
-    ``prefix`` (default ``<model>_casadi``) names CasADi's internal symbols (each unit has its
-    own). Functions named in ``external`` (other kernels, compiled in their own units) are
-    declared and called, not defined; helpers only they used are dropped."""
-    prefix = prefix or f"{bundle.model_name}_casadi"
-    gen = ca.CodeGenerator(prefix, {"with_header": False, "include_math": False,
-                                    "casadi_int": "int", "prefix": prefix})
-    for kernel in bundle.kernels:
-        gen.add(kernel.function)
-    code = _internalise(gen.dump(), {raw_name(bundle.model_name, k) for k in bundle.kernels})
-    code = _drop_unused(_externalise(code, external))
-    return _typed_literals(_math_macros(_void_unused_parameters(_single_copies(code))))
+
+class CasadiCode:
+    """CasADi's generated code of a bundle, split into top-level blocks (static helpers, tables
+    and functions), with the name and signature of each function block."""
+
+    def __init__(self, source: str, prefix: str):
+        self.prefix = prefix
+        lines = source.splitlines()
+        self.preamble: list[list[str]] = []               # chunks: one line, or one #if ... #endif group
+        self.blocks: dict[str, str] = {}                   # symbol -> its definition, in CasADi's order
+        self.names: dict[str, str] = {}                    # casadi_fN -> the CasADi function's name
+        self.signatures: dict[str, str] = {}               # casadi_fN -> "name:(inputs)->(outputs)"
+        starts = {a: (name, b) for name, a, b in _static_blocks(lines)}
+        i = 0
+        while i < len(lines):
+            if i in starts or (i + 1 in starts and _CALLED.match(lines[i])):
+                first = i
+                name, end = starts[i] if i in starts else starts[i + 1]
+                if i not in starts:
+                    self.names[name] = _CALLED.match(lines[i]).group(1)
+                    self.signatures[name] = lines[i][3:-3]
+                self.blocks[name] = "\n".join(lines[first:end + 1])
+                i = end + 1
+            elif _PREFIX_DEFINE.match(lines[i]) or lines[i].startswith("/* Add prefix to internal symbols */"):
+                i += 1
+            elif lines[i].startswith("#if"):
+                end = _end_of_conditional(lines, i)
+                self.preamble.append(lines[i:end + 1])
+                i = end + 1
+            else:
+                self.preamble.append([lines[i]])
+                i += 1
+        self.uses = {name: set(_IDENT.findall(text)) & set(self.blocks) - {name} for name, text in self.blocks.items()}
+        self._hashes: dict[str, str] = {}
+        #: the preamble's chunks (blank runs and the comment on dropped exports left out), each with
+        #: the optional macros it defines
+        self.chunks: list[tuple[str, set[str]]] = []
+        for chunk in self.preamble:
+            text = "\n".join(chunk)
+            if text.startswith("/* Configuration this file was compiled with") or \
+                    (text == "" and self.chunks and self.chunks[-1][0] == ""):
+                continue
+            self.chunks.append((text, {m for m in _OPTIONAL_MACROS if re.search(rf"#\s*define {m}\b", text)}))
+
+    @classmethod
+    def of(cls, bundle: Bundle) -> "CasadiCode":
+        """One code generator over every kernel of the bundle, then the text passes below."""
+        prefix = f"{bundle.model_name}_casadi"
+        gen = ca.CodeGenerator(prefix, {"with_header": False, "include_math": False,
+                                        "casadi_int": "int", "prefix": prefix})
+        for kernel in bundle.kernels:
+            gen.add(kernel.function)
+        code = _void_unused_parameters(_single_copies(_internalise(gen.dump())))
+        return cls(_typed_literals(_math_macros(code)), prefix)
+
+    def unit_symbols(self, model: str) -> dict[str, str]:
+        """casadi_fN -> C symbol of every function that gets its own unit: the kernels and the
+        functions named ``<model>_...`` whose code is the same wherever they occur."""
+        by_name: dict[str, set[str]] = {}
+        for number, name in self.names.items():
+            by_name.setdefault(name, set()).add(self._canonical(number))
+        return {number: function_symbol(model, name) for number, name in self.names.items()
+                if name.startswith(f"{model}_") and len(by_name[name]) == 1}
+
+    def _canonical(self, symbol: str) -> str:
+        """A hash of a block's code with the blocks it uses replaced by their hashes (equal hashes:
+        the same code, whatever CasADi numbered it)."""
+        if symbol not in self._hashes:
+            text = re.sub(rf"\b{symbol}\b", "casadi_self", self.blocks[symbol])
+            text = re.sub(r"^/\* \w+:", "/* :", text)
+            text = _IDENT.sub(lambda m: self._canonical(m.group(0)) if m.group(0) in self.uses[symbol] else m.group(0),
+                              text)
+            self._hashes[symbol] = "casadi_h" + hashlib.sha256(text.encode()).hexdigest()[:16]
+        return self._hashes[symbol]
+
+    def unit(self, number: str, symbols: dict[str, str]) -> str:
+        """The code of the unit defining function ``number`` as ``symbols[number]``
+        (SYMKF_INTERNAL): the static blocks it uses, and prototypes of the unit functions it calls."""
+        defined, declared, stack = set(), set(), [number]
+        while stack:
+            name = stack.pop()
+            if name not in defined:
+                defined.add(name)
+                for used in self.uses[name]:
+                    if used in symbols and used != number:
+                        declared.add(used)
+                    else:
+                        stack.append(used)
+        body = "\n\n".join(self.blocks[name] for name in self.blocks if name in defined)
+        body = body.replace(f"static int {number}(", f"SYMKF_INTERNAL int {number}(", 1)
+        local, counts = {}, Counter()
+        for used in _NUMBERED.findall(body):
+            if used in symbols:
+                local[used] = symbols[used]
+            elif used not in local and used in defined:
+                kind = used.rstrip("0123456789")
+                local[used], counts[kind] = f"{kind}{counts[kind]}", counts[kind] + 1
+        body = _NUMBERED.sub(lambda m: local.get(m.group(0), m.group(0)), body)
+        statics = sorted({local.get(name, name) for name in defined if name != number}, key=_natural)
+        prototypes = sorted({symbols[name] for name in declared})
+        return "\n".join(self._preamble(symbols[number], body)
+                         + ["/* Add prefix to internal symbols */"]
+                         + [f"#define {name} CASADI_PREFIX({name[len('casadi_'):]})" for name in statics]
+                         + [""] + [f"SYMKF_INTERNAL int {name}(const casadi_real** arg, casadi_real** res, "
+                                   f"casadi_int* iw, casadi_real* w, int mem);   /* in {name}.c */"
+                                   for name in prototypes]
+                         + ["", body, ""])
+
+    def _preamble(self, symbol: str, body: str) -> list[str]:
+        """CasADi's preamble for one unit: its own symbol prefix; macros the body does not use left out."""
+        used = set(_OPTIONAL_USE.findall(body))
+        out = []
+        for text, optional in self.chunks:
+            if optional and not optional & used:
+                if out and out[-1].startswith("/*"):             # its comment goes with it
+                    out.pop()
+            elif not (text == "" and out and out[-1] == ""):
+                out.append(text.replace(f"{self.prefix}_ ##", f"{symbol}_casadi_ ##"))
+        return out
+
+
+def _natural(name: str) -> tuple:
+    """Sort key: casadi_s2 before casadi_s10."""
+    match = re.fullmatch(r"(\D+)(\d*)", name)
+    return (match.group(1), int(match.group(2) or 0)) if match else (name, 0)
+
+
+def _end_of_conditional(lines: list[str], start: int) -> int:
+    """The line of the #endif closing the #if/#ifdef/#ifndef at ``start``."""
+    depth = 0
+    for j in range(start, len(lines)):
+        stripped = lines[j].lstrip()
+        if stripped.startswith("#if"):
+            depth += 1
+        elif stripped.startswith("#endif"):
+            depth -= 1
+            if depth == 0:
+                return j
+    raise ValueError(f"unterminated #if in CasADi's code at line {start + 1}")
 
 
 _EXPORTED = re.compile(r"^CASADI_SYMBOL_EXPORT [\w ]+?\**\s*\**(\w+)\(")
 _TOP_LEVEL_FUNCTION = re.compile(r"^(?:void|casadi_real|casadi_int|int|const [\w ]+?)\s*\**\s*\w+\((?!.*;\s*$)")
 
 
-def _internalise(source: str, kernel_symbols: set[str]) -> str:
-    """Keep each kernel's evaluation function (``SYMKF_INTERNAL``); drop CasADi's other exported
-    functions; make every helper static."""
+def _internalise(source: str) -> str:
+    """Drop CasADi's exported functions (the entry wrappers and reflection: n_in, sparsity_in,
+    incref, ...); make every helper static."""
     out, lines, i = [], source.splitlines(), 0
     while i < len(lines):
         line = lines[i]
-        match = _EXPORTED.match(line) if line.startswith("CASADI_SYMBOL_EXPORT") else None
-        if match:
-            end = i if line.rstrip().endswith("}") else _closing_brace(lines, i)
-            if match.group(1) in kernel_symbols and "casadi_real** arg" in line:
-                out += ["SYMKF_INTERNAL" + line[len("CASADI_SYMBOL_EXPORT"):]] + lines[i + 1:end + 1]
-            i = end + 1
+        if line.startswith("CASADI_SYMBOL_EXPORT") and _EXPORTED.match(line):
+            i = (i if line.rstrip().endswith("}") else _closing_brace(lines, i)) + 1
             continue
         out.append("static " + line if line[:1].isalpha() and _TOP_LEVEL_FUNCTION.match(line) else line)
         i += 1
@@ -165,33 +319,6 @@ def _internalise(source: str, kernel_symbols: set[str]) -> str:
 
 
 _CALLED = re.compile(r"^/\* (\w+):\(")
-_STATIC_FUNCTION = re.compile(r"^static int (casadi_f\d+)\(const casadi_real\*\* arg, ")
-
-
-def _externalise(source: str, external: set[str]) -> str:
-    """Replace the definition of every called function named in ``external`` (CasADi emits it as
-    ``/* name:(...) */ static int casadi_fN(...) {...}``) by a declaration of ``name``, and
-    point CasADi's ``casadi_fN`` at it."""
-    if not external:
-        return source
-    out, lines, i, renamed = [], source.splitlines(), 0, {}
-    while i < len(lines):
-        called = _CALLED.match(lines[i]) if lines[i].startswith("/* ") else None
-        static = _STATIC_FUNCTION.match(lines[i + 1]) if called and i + 1 < len(lines) else None
-        if called and static and called.group(1) in external:
-            renamed[static.group(1)] = called.group(1)
-            out += [f"/* {called.group(1)}: defined in {called.group(1)}.c */",
-                    f"SYMKF_INTERNAL int {called.group(1)}(const casadi_real** arg, casadi_real** res, "
-                    "casadi_int* iw, casadi_real* w, int mem);"]
-            i = _closing_brace(lines, i + 1) + 1
-            continue
-        out.append(lines[i])
-        i += 1
-    text = "\n".join(out) + "\n"
-    for local, name in renamed.items():
-        text = re.sub(rf"^#define {local} CASADI_PREFIX\(\w+\)$", f"#define {local} {name}", text, flags=re.M)
-    return text
-
 
 _COPY_LOOP = re.compile(r"for \(rr=\(&(w\d+)\), cs=(\w+)(?:\+(\d+))?; cs!=\2\+(\d+); cs\+=1\) \*rr\+\+ = \*cs;")
 
@@ -231,30 +358,6 @@ def _static_blocks(lines: list[str]) -> list[tuple[str, int, int]]:
         blocks.append((match.group(1), i, end))
         i = end + 1
     return blocks
-
-
-def _drop_unused(source: str) -> str:
-    """Remove static functions and tables nothing refers to any more (with their CASADI_PREFIX
-    #define), repeatedly: e.g. the helpers of a function now called in another unit."""
-    lines = source.splitlines()
-    blocks = _static_blocks(lines)
-    uses = Counter(_IDENT.findall(source))
-    inside = {name: Counter(_IDENT.findall("\n".join(lines[a:b + 1]))) for name, a, b in blocks}
-    defines = {line.split()[1]: n for n, line in enumerate(lines) if line.startswith("#define casadi_")}
-    dropped, changed = set(), True
-    while changed:
-        changed = False
-        for name, _, _ in blocks:
-            if name in dropped:
-                continue
-            outside = uses[name] - inside[name][name] - (1 if name in defines else 0)
-            if outside <= 0:
-                dropped.add(name)
-                uses.subtract(inside[name])
-                changed = True
-    removed = {n for name, a, b in blocks if name in dropped for n in range(a, b + 1)}
-    removed |= {defines[name] for name in dropped if name in defines}
-    return "\n".join(line for n, line in enumerate(lines) if n not in removed) + "\n"
 
 
 def _closing_brace(lines: list[str], start: int) -> int:
@@ -537,14 +640,14 @@ def _run_loop(model: str, kernel: Kernel) -> str:
     return "\n".join(lines)
 
 
-def api_unit(bundle: Bundle, content_hash: str) -> str:
+def api_unit(bundle: Bundle) -> str:
     """``<model>_api.c``: the documented API (wrappers, binding entries, run loops) over the
-    kernels' entry points in their own units."""
+    kernels' entry points in their own units. The content hash is not in it (:func:`hash_unit`)."""
     model = bundle.model_name
     prototypes = [f"SYMKF_INTERNAL int {raw_name(model, k)}(const casadi_real **arg, casadi_real **res, int *iw, "
                   "casadi_real *w, int mem);" for k in bundle.kernels]
     parts = [f"/* {GENERATED_NOTICE.format(model=model)}",
-             f" * Content hash: {content_hash}. CasADi {ca.__version__}. */",
+             f" * CasADi {ca.__version__}. */",
              "#include <math.h>",
              f'#include "{model}.h"',
              "",
@@ -562,7 +665,6 @@ def api_unit(bundle: Bundle, content_hash: str) -> str:
              *prototypes,
              "",
              "/* ---------------- symkf wrappers: the public API ---------------- */",
-             f'const char *{model}_content_hash(void) {{ return "{content_hash}"; }}',
              ""]
     parts.append(FINITE_HELPER)
     by_name = {k.name: k for k in bundle.kernels}
@@ -573,11 +675,20 @@ def api_unit(bundle: Bundle, content_hash: str) -> str:
     return ascii_text("\n".join(parts))
 
 
+def hash_unit(model: str, content_hash: str) -> str:
+    """``<model>_hash.c``: ``<model>_content_hash()``, alone in its unit (every build changes it)."""
+    return "\n".join([f"/* {GENERATED_NOTICE.format(model=model)}",
+                      " * The content hash this library was generated with (checked by the Python loader). */",
+                      f'#include "{model}.h"', "",
+                      f'const char *{model}_content_hash(void) {{ return "{content_hash}"; }}', ""])
+
+
 def units(bundle: Bundle, content_hash: str) -> dict[str, str]:
-    """Every translation unit of the bundle, file name -> C text: the API unit, then one per kernel."""
-    out = {api_file(bundle.model_name): api_unit(bundle, content_hash)}
-    out.update({unit_file(k): kernel_unit(bundle, k) for k in bundle.kernels})
-    return out
+    """Every translation unit of the bundle, file name -> C text: the API unit, the hash unit, then
+    one per kernel and per function the kernels call (:func:`function_units`)."""
+    model = bundle.model_name
+    return {api_file(model): api_unit(bundle), hash_file(model): hash_unit(model, content_hash),
+            **function_units(bundle)}
 
 
 def public_functions(bundle: Bundle) -> list[str]:
@@ -863,8 +974,9 @@ _PREAMBLE = """ *
  *   stack use is given by <NAME>_STACK_BYTES: the compiler's figure ({compiler}, flags
  *   {flags}, gcc -fcallgraph-info=su) for its own frame plus its deepest chain of calls into
  *   the bundle's units; calls into libm (sin, atan2, ...) are not included. -1 means not measured.
- * - Sources: {model}_api.c (these functions) and one {model}_k_<kernel>.c per kernel (CasADi's
- *   code; its entry point is SYMKF_INTERNAL, i.e. hidden). The Makefile builds them all.
+ * - Sources: {model}_api.c (these functions), {model}_hash.c, one {model}_k_<kernel>.c per kernel
+ *   and one {model}_fn_<name>.c per function the kernels call (CasADi's code; entry points are
+ *   SYMKF_INTERNAL, i.e. hidden). The Makefile builds them all.
  * - Only the functions declared here are exported (everything else is static or hidden).
  * - Single precision: compile every .c and your code with -DSYMKF_FLOAT (casadi_real becomes
  *   float and the float math functions sinf, sqrtf, ... are called explicitly). Link with -lm.
@@ -939,7 +1051,7 @@ def makefile(model: str, optimization: str, sources: list[str]) -> str:
     stacks = [f[:-2] + "_stack.o" for f in sources]
     rules = []
     for source, obj, flt, stk in zip(sources, objects, floats, stacks):
-        header = f" {model}.h" if source == f"{model}_api.c" else ""
+        header = f" {model}.h" if source in (api_file(model), hash_file(model)) else ""
         rules += [f"{obj}: {source}{header}", f"\t$(CC) $(CFLAGS) -fPIC -c -o $@ {source}",
                   f"{flt}: {source}{header}", f"\t$(CC) $(CFLAGS) -Wdouble-promotion -DSYMKF_FLOAT -c -o $@ {source}",
                   f"{stk}: {source}{header}", f"\t$(CC) $(CFLAGS) -fPIC {STACK_FLAGS} -c -o $@ {source}", ""]

@@ -1,5 +1,5 @@
 /* Flight-software example: the launcher EKF over a recorded radar pass, with only the generated
- * bundle (build/launcher/: launcher.h, launcher_api.c, launcher_k_*.c), a C99 compiler and libm.
+ * bundle (build/launcher/: launcher.h, launcher_*.c), a C99 compiler and libm.
  *
  *   python -m symkf.scenarios.launcher.record --out radar.txt     (or any record in that format)
  *   make && ./flight radar.txt > estimates.txt

@@ -21,6 +21,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import resource
 import statistics
 import tempfile
 import time
@@ -83,9 +84,10 @@ def one_run(name: str, overrides: dict) -> dict:
             if old not in text:
                 raise RuntimeError(f"bench build: the line to edit ({old}) is not in models/{name}.py")
             path.write_text(text.replace(old, new, 1))
-            start = time.perf_counter()
+            start, cpu = time.perf_counter(), _cpu_seconds()
             edited = _loaded_filter(path, overrides)
             edit = time.perf_counter() - start
+            edit_cpu = {key: value - cpu[key] for key, value in _cpu_seconds().items()}
             assert not edited.build.up_to_date
             sources = json.loads(edited.build.manifest.read_text())["sources"]
             lines = sum(len((edited.build.directory / s).read_text().splitlines()) for s in sources)
@@ -95,7 +97,15 @@ def one_run(name: str, overrides: dict) -> dict:
             else:
                 os.environ["SYMKF_BUILD_DIR"] = previous
     return {"cold_s": cold, "noop_s": noop, "edit_s": edit, "edit_phases_s": edited.build.timings,
+            "edit_cpu_s": edit_cpu, "edit_units_compiled": len(edited.build.compiled), "units": len(sources),
             "generated_c_lines": lines}
+
+
+def _cpu_seconds() -> dict:
+    """CPU seconds (user + system) of this process ("python") and of its finished children
+    ("compilers": every compiler it ran), less noisy than wall time on a shared machine."""
+    own, children = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return {"python": own.ru_utime + own.ru_stime, "compilers": children.ru_utime + children.ru_stime}
 
 
 def measure(name: str, repeats: int, overrides: dict | None = None) -> dict:
@@ -104,7 +114,9 @@ def measure(name: str, repeats: int, overrides: dict | None = None) -> dict:
     result = {key: statistics.median(r[key] for r in runs) for key in ("cold_s", "noop_s", "edit_s")}
     phases = runs[0]["edit_phases_s"].keys()
     result["edit_phases_s"] = {p: statistics.median(r["edit_phases_s"][p] for r in runs) for p in phases}
-    result["generated_c_lines"] = runs[0]["generated_c_lines"]
+    result["edit_cpu_s"] = {p: statistics.median(r["edit_cpu_s"][p] for r in runs) for p in ("python", "compilers")}
+    for key in ("generated_c_lines", "units", "edit_units_compiled"):
+        result[key] = runs[0][key]
     result["samples"] = {key: [r[key] for r in runs] for key in ("cold_s", "noop_s", "edit_s")}
     result["meets_targets"] = {"noop": result["noop_s"] <= TARGETS["noop_s"],
                                "edit": result["edit_s"] <= TARGETS["edit_s"][name]}
@@ -137,10 +149,11 @@ def run(args) -> int:
     print(f"model author's loop, medians of {args.repeats} (s); load average at the end "
           f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} cores" + (f"; options {overrides}" if overrides else ""))
     print(f"{'model':15s} {'cold build':>11s} {'no-op load':>11s} {'edit->filter':>13s} {'target':>7s}   "
-          "edit: model+hash / generate / write C / compile")
+          "edit: model+hash / generate / write C / compile (s)   edit CPU s: python + compilers   units compiled")
     for name in names:
-        r, p = results[name], results[name]["edit_phases_s"]
+        r, p, cpu = results[name], results[name]["edit_phases_s"], results[name]["edit_cpu_s"]
         print(f"{name:15s} {r['cold_s']:11.2f} {r['noop_s']:11.3f} {r['edit_s']:13.2f} "
               f"{TARGETS['edit_s'][name]:7.1f}   {p.get('model', 0):.2f} / {p.get('generate', 0):.2f} / "
-              f"{p.get('write', 0):.2f} / {p.get('compile', 0):.2f}   ({r['generated_c_lines']} lines of C)")
+              f"{p.get('write', 0):.2f} / {p.get('compile', 0):.2f}   {cpu['python']:.2f} + {cpu['compilers']:.2f}   "
+              f"{r['edit_units_compiled']} of {r['units']} ({r['generated_c_lines']} lines of C)")
     return 0

@@ -217,7 +217,9 @@ def test_export_bundle_anywhere(tmp_path, write_model, private_build):
     out = tmp_path / "flight"
     assert main(["build", str(write_model(tmp_path / "tracker.py")), "--out", str(out)]) == 0
     assert sorted(p.name for p in out.iterdir()) == ["Makefile", "libtiny.so", "manifest.json", "tiny.h", "tiny_api.c",
-                                                     "tiny_k_ekf_predict.c", "tiny_k_ekf_step_gps.c",
+                                                     "tiny_fn_fd.c", "tiny_fn_fd_and_jac.c", "tiny_fn_h_and_jac_gps.c",
+                                                     "tiny_fn_h_gps.c", "tiny_fn_jac_fd.c", "tiny_fn_jac_h_gps.c",
+                                                     "tiny_hash.c", "tiny_k_ekf_predict.c", "tiny_k_ekf_step_gps.c",
                                                      "tiny_k_ekf_update_gps.c", "tiny_k_f.c", "tiny_k_fd.c",
                                                      "tiny_k_h_gps.c", "tiny_k_jac_fd.c", "tiny_k_jac_h_gps.c"]
     proc = subprocess.run(["make", "-j2", "-C", str(out), "all"], capture_output=True, text=True)
@@ -263,19 +265,27 @@ def test_library_with_another_hash_is_refused(launcher_compiled):
         CompiledBackend(launcher_compiled.backend.library_path, manifest)
 
 
-def test_dynamics_edit_recompiles_only_the_units_holding_the_dynamics(tmp_path, write_model, private_build):
-    """One unit per kernel, objects cached by their text: the measurement kernels' units, and the
-    filter step (which calls its predict and update units), are reused after a dynamics edit."""
+def test_an_edit_recompiles_only_the_functions_whose_code_changed(tmp_path, write_model, private_build):
+    """One unit per function (each kernel and each function the kernels call), objects cached by
+    their text: a dynamics edit recompiles the functions that evaluate f, a measurement edit those
+    that evaluate h; the filter kernels, which call them, and the API unit are reused."""
     path = write_model(tmp_path / "tracker.py", drag=0.1)
     cold = build_model(str(path))
     assert len(cold.compiled) == len(json.loads(cold.manifest.read_text())["sources"])
     write_model(path, drag=0.2)
     edited = build_model(str(path))
-    assert sorted(edited.compiled) == ["tiny_api.c", "tiny_k_ekf_predict.c", "tiny_k_f.c", "tiny_k_fd.c",
-                                       "tiny_k_jac_fd.c"]
+    assert sorted(edited.compiled) == ["tiny_fn_fd.c", "tiny_fn_fd_and_jac.c", "tiny_hash.c", "tiny_k_f.c"]
+    predict = (edited.directory / "tiny_k_ekf_predict.c").read_text()
+    assert "SYMKF_INTERNAL int tiny_fn_fd_and_jac(" in predict and "/* in tiny_fn_fd_and_jac.c */" in predict
     step = (edited.directory / "tiny_k_ekf_step_gps.c").read_text()
     assert "SYMKF_INTERNAL int tiny_k_ekf_predict(" in step                          # declared, not copied:
     assert re.findall(r"^SYMKF_INTERNAL int (\w+)\(.*\{$", step, flags=re.M) == ["tiny_k_ekf_step_gps"]
+    path.write_text(path.read_text().replace('"measured position", pos)', '"measured position", 1.5 * pos)'))
+    measured = build_model(str(path))                      # a new term in h: h's functions, work sizes
+    assert not {"tiny_fn_fd.c", "tiny_fn_fd_and_jac.c", "tiny_k_f.c", "tiny_k_ekf_predict.c"} & set(measured.compiled)
+    path.write_text(path.read_text().replace("1.5 * pos", "2.5 * pos"))
+    measured = build_model(str(path))                      # a constant of h: h's functions only
+    assert sorted(measured.compiled) == ["tiny_fn_h_and_jac_gps.c", "tiny_fn_h_gps.c", "tiny_hash.c"]
     write_model(path, drag=0.1)                                                          # back: all from the cache
     assert build_model(str(path)).compiled == ()
 

@@ -43,7 +43,9 @@ def bundle(tmp_path_factory):
     result = build_model("launcher")
     folder = tmp_path_factory.mktemp("flight")
     sources = json.loads(result.manifest.read_text())["sources"]
-    assert sources[0] == "launcher_api.c" and len(sources) == 1 + len(json.loads(result.manifest.read_text())["kernels"])
+    kernels = json.loads(result.manifest.read_text())["kernels"]
+    assert sources[:2] == ["launcher_api.c", "launcher_hash.c"]
+    assert {f"launcher_k_{k['name']}.c" for k in kernels} <= set(sources)        # + the functions they call
     for name in sources + ["launcher.h", "Makefile"]:
         shutil.copy(result.directory / name, folder / name)
     proc = subprocess.run(["make", "-j2", "-C", str(folder), "all", "float"], capture_output=True, text=True)
