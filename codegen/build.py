@@ -33,6 +33,7 @@ from __future__ import annotations
 import ctypes
 import errno
 import fcntl
+import fnmatch
 import functools
 import hashlib
 import importlib.metadata
@@ -57,7 +58,7 @@ from . import c_writer, families  # noqa: F401  (families register themselves on
 from .discretize import continuous_dynamics, measurement_function
 from .kernels import FAMILIES, ModelFunctions, Symbols, model_kernels
 from .scaling import model_for
-from .spec import Bundle, CodegenConfig
+from .spec import Bundle, CodegenConfig, ConfigError, register_options
 
 CODEGEN_DIR = Path(__file__).resolve().parent
 #: Codegen modules every model's code depends on (their source is part of every content hash).
@@ -88,8 +89,9 @@ class BuildResult:
     content_hash: str
     up_to_date: bool
     seconds: float
-    #: Where the time went (s): "model" (execute build() + hash), "generate" (kernels),
-    #: "write" (C text, header), "compile" (units not in the object cache, in parallel; link).
+    #: Where the time went (s): "model" (execute build() + hash), "generate" (kernels; the model's
+    #: own functions start compiling meanwhile), "write" (C text, header; the units start
+    #: compiling), "compile" (waiting for the units not in the object cache; link).
     timings: dict = field(default_factory=dict)
     #: The C units compiled by this build (the others came from the object cache).
     compiled: tuple = ()
@@ -237,11 +239,15 @@ def generate(model, config: CodegenConfig | None = None) -> Bundle:
     return _generate(model, config or default_config(model))
 
 
-def _generate(model: Model, config: CodegenConfig) -> Bundle:
-    """:func:`generate` of a model already validated (by :func:`build_model`)."""
+def _generate(model: Model, config: CodegenConfig, on_kernels=None) -> Bundle:
+    """:func:`generate` of a model already validated (by :func:`build_model`). ``on_kernels``, if
+    given, receives the bundle of the model's own kernels (f, f_d, F, h, H) before the filter
+    families are generated (a build starts compiling them meanwhile)."""
     model = model_for(model, config)
     symbols, functions = Symbols(model), ModelFunctions(model, config)
     kernels, filters = model_kernels(model, symbols, functions), []
+    if on_kernels is not None:
+        on_kernels(Bundle(model.name, list(kernels), config, model.describe()))
     for family in model.filters:
         if family not in FAMILIES:
             raise BuildError(f"model '{model.name}' asks for filter family '{family}'; known: {sorted(FAMILIES)}")
@@ -333,6 +339,7 @@ def build_model(model, force: bool = False, **overrides) -> BuildResult:
     start = time.perf_counter()
     model = get_model(model)
     config = CodegenConfig().with_overrides(**{**model.codegen_defaults, **overrides})
+    unit_optimization(config)                                   # a bad per-unit option: refused before any work
     timings = {}
     root = private_root()
     directory = root / folder_name(model, config)
@@ -353,14 +360,15 @@ def build_model(model, force: bool = False, **overrides) -> BuildResult:
         _remove_stale(root, directory.name)
         staging = Path(tempfile.mkdtemp(prefix=f".{directory.name}.tmp-", dir=root))
         try:
-            mark = time.perf_counter()
-            bundle = _generate(model, config)
-            timings["generate"] = time.perf_counter() - mark
-            write_bundle(bundle, staging, key, generated, cc)
-            timings["write"] = time.perf_counter() - mark - timings["generate"]
-            mark = time.perf_counter()
-            compiled = compile_bundle(staging, model.name, cc, config)
-            timings["compile"] = time.perf_counter() - mark
+            with UnitCompiler(staging, cc, config, f"{model.name}.h") as units:
+                mark = time.perf_counter()      # the model's own functions compile while the families generate
+                bundle = _generate(model, config, lambda own: units.add(c_writer.function_units(own)))
+                timings["generate"] = time.perf_counter() - mark
+                write_bundle(bundle, staging, key, generated, cc, units)
+                timings["write"] = time.perf_counter() - mark - timings["generate"]
+                mark = time.perf_counter()
+                compiled = compile_bundle(staging, model.name, cc, config, units)
+                timings["compile"] = time.perf_counter() - mark
             _install(staging, directory)
         except BaseException:
             shutil.rmtree(staging, ignore_errors=True)
@@ -376,28 +384,49 @@ def _result(name: str, directory: Path, up_to_date: bool, start: float, timings:
                        time.perf_counter() - start, dict(timings or {}), tuple(compiled))
 
 
-def write_bundle(bundle: Bundle, directory: Path, key: str, generated: str, cc: str) -> None:
-    """Write the translation units, the header, the Makefile and a provisional manifest.json
-    (no library yet; ``sources`` lists the units, the API unit first)."""
+def write_bundle(bundle: Bundle, directory: Path, key: str, generated: str, cc: str,
+                 units: UnitCompiler | None = None) -> None:
+    """Write the translation units (through ``units``, which starts compiling them), the header,
+    the Makefile and a provisional manifest.json (no library yet; ``sources`` lists the units,
+    the API unit first)."""
     name = bundle.model_name
     sources = c_writer.units(bundle, key)
-    for file, text in sources.items():
-        (directory / file).write_text(text)
+    if units is not None:
+        units.add(sources)
+    else:
+        for file, text in sources.items():
+            (directory / file).write_text(text)
     (directory / f"{name}.h").write_text(c_writer.header(bundle, key, cc, " ".join(compile_flags(bundle.config))))
-    (directory / "Makefile").write_text(c_writer.makefile(name, bundle.config.optimization, list(sources)))
+    own = {file: flags for file in sources if (flags := unit_optimization(bundle.config, file)) != bundle.config.optimization}
+    (directory / "Makefile").write_text(c_writer.makefile(name, bundle.config.optimization, list(sources), own))
     manifest = {"model": name, "content_hash": key, "generated_hash": generated,
                 "symkf_version": _symkf_version(), "casadi_version": ca.__version__,
                 "compiler": cc, "compiler_identity": compiler_identity(cc), "flags": c_writer.STRICT_FLAGS,
-                "optimization": bundle.config.optimization, "config": asdict(bundle.config),
+                "optimization": bundle.config.optimization, "unit_optimization": own, "config": asdict(bundle.config),
                 "description": bundle.description, "library": f"lib{name}.so", "sources": list(sources),
                 "kernels": [k.as_dict() for k in bundle.kernels],
                 "filters": [f.as_dict() for f in bundle.filters]}
     (directory / "manifest.json").write_text(json.dumps(manifest, indent=1))
 
 
-def compile_flags(config: CodegenConfig) -> list[str]:
-    """Flags of every unit, in the library and in the bundle's Makefile alike."""
-    return c_writer.STRICT_FLAGS.split() + config.optimization.split() + ["-fPIC"] + c_writer.precision_flags(config)
+def compile_flags(config: CodegenConfig, unit: str = "") -> list[str]:
+    """Flags of a unit (:func:`unit_optimization`), in the library and in the bundle's Makefile alike."""
+    return (c_writer.STRICT_FLAGS.split() + unit_optimization(config, unit).split() + ["-fPIC"]
+            + c_writer.precision_flags(config))
+
+
+register_options("unit_optimization")
+
+
+def unit_optimization(config: CodegenConfig, unit: str = "") -> str:
+    """The -O flags of one unit: those of the first shell pattern in the codegen option
+    ``unit_optimization`` ({pattern of unit file names: flags}, e.g. ``{"*_k_ekf_step_*":
+    "-O2 -fno-math-errno"}``) that matches its file name, else ``config.optimization``."""
+    table = config.get("unit_optimization") or {}
+    if not isinstance(table, dict) or not all(isinstance(k, str) and isinstance(v, str) and v.startswith("-O")
+                                              for k, v in table.items()):
+        raise ConfigError(f"unit_optimization: expected {{unit file pattern: flags starting with -O}}, got {table!r}")
+    return next((flags for pattern, flags in table.items() if fnmatch.fnmatchcase(unit, pattern)), config.optimization)
 
 
 @functools.lru_cache(maxsize=8)
@@ -410,18 +439,22 @@ def measures_stack(cc: str) -> bool:
         return returncode == 0 and (Path(tmp) / "probe.ci").is_file()
 
 
-def compile_bundle(directory: Path, name: str, cc: str, config: CodegenConfig) -> list[str]:
-    """Compile the manifest's units in parallel (one compiler per core; a unit whose text,
-    compiler and flags match a cached object is not recompiled), fill the header's stack figures
-    from the compiler's call graphs of those same compiles, link lib<name>.so, copy it to the
-    per-build name Python loads and record that copy's SHA-256. Returns the units compiled."""
+def compile_bundle(directory: Path, name: str, cc: str, config: CodegenConfig,
+                   units: UnitCompiler | None = None) -> list[str]:
+    """Compile the manifest's units in parallel (:class:`UnitCompiler`: one compiler per core; a
+    unit whose text, compiler and flags match a cached object is not recompiled; ``units``: the
+    compiler the build already started units with), fill the header's stack figures from the
+    compiler's call graphs of those same compiles, link lib<name>.so, copy it to the per-build name
+    Python loads and record that copy's SHA-256. Returns the units compiled."""
     manifest = json.loads((directory / "manifest.json").read_text())
-    stack = measures_stack(cc)
-    flags = compile_flags(config) + (c_writer.STACK_FLAGS.split() if stack else [])
-    objects, compiled = _compile_units(directory, cc, flags, manifest["sources"], f"{name}.h")
-    graphs = "".join(obj.with_suffix(".ci").read_text() for obj in objects) if stack else None
+    if units is None:
+        with UnitCompiler(directory, cc, config, f"{name}.h") as units:
+            units.add({file: (directory / file).read_text() for file in manifest["sources"]})
+            return compile_bundle(directory, name, cc, config, units)
+    objects, compiled = units.finish(manifest["sources"])
+    graphs = "".join(obj.with_suffix(".ci").read_text() for obj in objects) if units.stack else None
     header = directory / f"{name}.h"
-    header.write_text(c_writer.fill_stack(header.read_text(), c_writer.stack_usage(graphs) if stack else None))
+    header.write_text(c_writer.fill_stack(header.read_text(), c_writer.stack_usage(graphs) if units.stack else None))
     cmd = cc.split() + ["-shared", "-o", f"lib{name}.so"] + [o.name for o in objects] + ["-lm"]
     returncode, stderr = run_compiler(cmd, directory)
     if returncode != 0:
@@ -436,55 +469,98 @@ def compile_bundle(directory: Path, name: str, cc: str, config: CodegenConfig) -
     return compiled
 
 
-def _unit_keys(directory: Path, cc: str, identity: str, sources: list[str], header: str) -> dict[str, str]:
-    """Hash of what determines each unit's object: compiler, flags and its text. A unit that
-    includes the header (the API and hash units) is hashed as the preprocessor's output (``cc -E``,
-    line markers kept), so the header's comments, the content hash it quotes and the macros the
-    unit does not use (a model constant, a default) do not recompile it."""
-    including = [file for file in sources if f'#include "{header}"' in (directory / file).read_text()]
-    flags = [arg for arg in json.loads(identity)[1] if arg not in c_writer.STACK_FLAGS.split()]
-    commands = [cc.split() + flags + ["-E", "-o", file[:-2] + ".i", file] for file in including]
-    for cmd, (returncode, stderr) in zip(commands, run_compilers(commands, directory)):
-        if returncode != 0:
-            raise BuildError(f"preprocessing {cmd[-1]} failed ({' '.join(cmd)}):\n{stderr[-4000:]}")
-    keys = {}
-    for file in sources:
-        text = (directory / (file[:-2] + ".i" if file in including else file)).read_text()
-        keys[file] = hashlib.sha256((identity + text).encode()).hexdigest()[:32]
-    for file in including:
-        (directory / (file[:-2] + ".i")).unlink()
-    return keys
+@dataclass
+class _Unit:
+    text: str
+    cached: Path | None = None           # its object cache entry (None: not keyed yet)
+    job: int | None = None               # its compile in the pool (None: the object came from the cache)
 
 
-def _compile_units(directory: Path, cc: str, flags: list[str], sources: list[str],
-                   header: str) -> tuple[list[Path], list[str]]:
-    """Compile each unit to an object (and its call graph, with the stack flags), reusing cached
-    ones from ``<root>/.objects``; returns the object paths in ``directory`` and the units compiled.
+class UnitCompiler:
+    """A build's C units compiled to objects while the build goes on: each unit as soon as its text
+    is known (:meth:`add`: written, then compiled in the background, largest first, one compiler
+    per core), then :meth:`finish` waits for them.
 
-    A cache entry ``<key>.o`` (+ ``<key>.ci``) is named by :func:`_unit_keys` (what determines the
-    object) and vouched for by ``<key>.sum``, the SHA-256 of its files, written last: an entry
-    whose copied files do not match their sums (damaged, replaced, half written) is recompiled."""
-    cache = directory.parent / ".objects"
-    cache.mkdir(exist_ok=True)
-    identity = json.dumps([compiler_identity(cc), flags])
-    suffixes = (".o", ".ci") if c_writer.STACK_FLAGS.split()[-1] in flags else (".o",)
-    keys = _unit_keys(directory, cc, identity, sources, header)
-    todo, objects = [], []
-    for file in sources:
-        obj = directory / (file[:-2] + ".o")
-        cached = cache / keys[file]
-        objects.append(obj)
-        if not _reuse(cached, obj, suffixes):
-            todo.append((cc.split() + flags + ["-c", "-o", obj.name, file], obj, cached,
-                         (directory / file).stat().st_size))
-    todo = [item[:3] for item in sorted(todo, key=lambda item: -item[3])]      # largest first: shortest wall time
-    for (cmd, _, _), (returncode, stderr) in zip(todo, run_compilers([c for c, _, _ in todo], directory)):
-        if returncode != 0:
-            raise BuildError(f"compiling {cmd[-1]} failed ({' '.join(cmd)}):\n{stderr[-4000:]}")
-    for _, obj, cached in todo:
-        _store(cached, obj, suffixes)
-    _prune(cache, keep=400)
-    return objects, [cmd[-1] for cmd, _, _ in todo]
+    Objects are cached in ``<root>/.objects``: an entry ``<key>.o`` (+ ``<key>.ci``, the call graph
+    with stack frames) is named by the hash of the compiler's identity, the unit's flags and its
+    text, or for a unit that includes the header (the API and hash units) the preprocessor's output
+    (``cc -E``, line markers kept: the header's comments, the content hash it quotes and macros the
+    unit does not use, such as a model constant, do not recompile it). An entry is vouched for by
+    ``<key>.sum``, the SHA-256 of its files, written last: one whose copies do not match their sums
+    (damaged, replaced, half written) is recompiled, never linked."""
+
+    def __init__(self, directory: Path, cc: str, config: CodegenConfig, header: str, jobs: int | None = None):
+        self.directory, self.cc, self.config, self.header = directory, cc, config, header
+        self.stack = measures_stack(cc)
+        self.suffixes = (".o", ".ci") if self.stack else (".o",)
+        self.cache = directory.parent / ".objects"
+        self.cache.mkdir(exist_ok=True)
+        self.pool = CompilerPool(directory, jobs)
+        self.units: dict[str, _Unit] = {}
+
+    def __enter__(self) -> "UnitCompiler":
+        return self
+
+    def __exit__(self, kind, value, traceback) -> None:
+        self.pool.__exit__(kind, value, traceback)
+
+    def flags(self, file: str) -> list[str]:
+        return compile_flags(self.config, file) + (c_writer.STACK_FLAGS.split() if self.stack else [])
+
+    def add(self, texts: dict[str, str]) -> None:
+        """Write these units and start compiling each one whose object is not cached; a unit
+        written before with another text is cancelled and restarted. A unit that includes the
+        header is keyed (and started) by :meth:`finish`, once the header is written."""
+        for file, text in sorted(texts.items(), key=lambda item: -len(item[1])):
+            unit = self.units.get(file)
+            if unit is not None and unit.text == text:
+                continue
+            if unit is not None and unit.job is not None:
+                self.pool.cancel(unit.job)
+            (self.directory / file).write_text(text)
+            self.units[file] = _Unit(text)
+            if f'#include "{self.header}"' not in text:
+                self._start(file, text)
+        self.pool.poll()
+
+    def _start(self, file: str, keyed_text: str) -> None:
+        identity = json.dumps([compiler_identity(self.cc), self.flags(file)])
+        unit = self.units[file]
+        unit.cached = self.cache / hashlib.sha256((identity + keyed_text).encode()).hexdigest()[:32]
+        obj = self.directory / (file[:-2] + ".o")
+        if not _reuse(unit.cached, obj, self.suffixes):
+            unit.job = self.pool.submit(self.cc.split() + self.flags(file) + ["-c", "-o", obj.name, file])
+
+    def finish(self, sources: list[str]) -> tuple[list[Path], list[str]]:
+        """Start the units that include the header, wait for every compile and cache the new
+        objects. Returns the objects of ``sources`` (in order) and the units compiled; units added
+        but not in ``sources`` (early ones the final code does not have) are removed."""
+        for file in set(self.units) - set(sources):
+            unit = self.units.pop(file)
+            if unit.job is not None:
+                self.pool.cancel(unit.job)
+            for suffix in (".c", ".o", ".ci", ".su"):
+                (self.directory / (file[:-2] + suffix)).unlink(missing_ok=True)
+        waiting = [file for file in sources if self.units[file].cached is None]
+        commands = [self.cc.split() + compile_flags(self.config, file) + ["-E", "-o", file[:-2] + ".i", file]
+                    for file in waiting]
+        for cmd, (returncode, stderr) in zip(commands, run_compilers(commands, self.directory)):
+            if returncode != 0:
+                raise BuildError(f"preprocessing {cmd[-1]} failed ({' '.join(cmd)}):\n{stderr[-4000:]}")
+        for file in waiting:
+            self._start(file, (self.directory / (file[:-2] + ".i")).read_text())
+            (self.directory / (file[:-2] + ".i")).unlink()
+        results = self.pool.wait()
+        compiled = [file for file in sources if self.units[file].job is not None]
+        for file in compiled:
+            returncode, stderr = results[self.units[file].job]
+            if returncode != 0:
+                cmd = self.cc.split() + self.flags(file) + ["-c", file]
+                raise BuildError(f"compiling {file} failed ({' '.join(cmd)}):\n{stderr[-4000:]}")
+        for file in compiled:
+            _store(self.units[file].cached, self.directory / (file[:-2] + ".o"), self.suffixes)
+        _prune(self.cache, keep=400)
+        return [self.directory / (file[:-2] + ".o") for file in sources], compiled
 
 
 def _reuse(cached: Path, obj: Path, suffixes: tuple[str, ...]) -> bool:
@@ -550,32 +626,73 @@ def run_compilers(cmds: list[list[str]], cwd: Path, jobs: int | None = None) -> 
     """Run compiler commands, ``jobs`` at a time (default: one per core), each in its own process
     group that dies with this process; on any exception here (Ctrl-C) every group is killed.
     Returns (return code, stderr) per command."""
-    jobs = max(1, jobs or os.cpu_count() or 1)
-    pending, running, results = list(enumerate(cmds)), [], {}
-    try:
-        while pending or running:
-            while pending and len(running) < jobs:
-                index, cmd = pending.pop(0)
-                log = tempfile.TemporaryFile(mode="w+")
-                running.append((index, _spawn(cmd, cwd, log), log))
-            for item in list(running):
-                index, proc, log = item
-                if proc.poll() is not None:
-                    log.seek(0)
-                    results[index] = (proc.returncode, log.read())
-                    log.close()
-                    running.remove(item)
-            if running:
-                time.sleep(0.005)
-    except BaseException:
-        for _, proc, _ in running:
+    with CompilerPool(cwd, jobs) as pool:
+        indices = [pool.submit(cmd) for cmd in cmds]
+        results = pool.wait()
+    return [results[i] for i in indices]
+
+
+class CompilerPool:
+    """Compiler commands run ``jobs`` at a time (default: one per core) in the background while
+    this process goes on: each in its own process group that dies with this process, started when
+    submitted or at the next :meth:`poll` (a builder polls between its steps); leaving the ``with``
+    block on an exception (Ctrl-C) kills every group still running."""
+
+    def __init__(self, cwd: Path, jobs: int | None = None):
+        self.cwd, self.jobs = cwd, max(1, jobs or os.cpu_count() or 1)
+        self.pending: list[tuple[int, list[str]]] = []
+        self.running: dict[int, tuple[subprocess.Popen, object]] = {}
+        self.results: dict[int, tuple[int, str]] = {}
+        self.submitted = 0
+
+    def __enter__(self) -> "CompilerPool":
+        return self
+
+    def __exit__(self, kind, value, traceback) -> None:
+        if kind is not None:
+            for index in list(self.running):
+                self.cancel(index)
+
+    def submit(self, cmd: list[str]) -> int:
+        """Queue a command (started at once if a slot is free); returns its index."""
+        self.pending.append((self.submitted, cmd))
+        self.submitted += 1
+        self.poll()
+        return self.submitted - 1
+
+    def poll(self) -> None:
+        """Collect finished commands and start queued ones in the free slots."""
+        for index, (proc, log) in list(self.running.items()):
+            if proc.poll() is not None:
+                log.seek(0)
+                self.results[index] = (proc.returncode, log.read())
+                log.close()
+                del self.running[index]
+        while self.pending and len(self.running) < self.jobs:
+            index, cmd = self.pending.pop(0)
+            log = tempfile.TemporaryFile(mode="w+")
+            self.running[index] = (_spawn(cmd, self.cwd, log), log)
+
+    def cancel(self, index: int) -> None:
+        """Drop a queued command, or kill a running one (its process group) and wait for it."""
+        self.pending = [item for item in self.pending if item[0] != index]
+        if index in self.running:
+            proc, log = self.running.pop(index)
             try:
                 os.killpg(proc.pid, signal.SIGKILL)
             except OSError:
                 pass
             proc.wait()
-        raise
-    return [results[i] for i in range(len(cmds))]
+            log.close()
+        self.results[index] = (-signal.SIGKILL, "cancelled")
+
+    def wait(self) -> dict[int, tuple[int, str]]:
+        """Wait for every submitted command; (return code, stderr) by index."""
+        self.poll()
+        while self.pending or self.running:
+            time.sleep(0.005)
+            self.poll()
+        return self.results
 
 
 def _install(staging: Path, directory: Path) -> None:

@@ -1043,18 +1043,20 @@ STRICT_FLAGS = "-std=c99 -Wall -Wextra -Werror -pedantic"
 STACK_FLAGS = "-fstack-usage -fcallgraph-info=su"
 
 
-def makefile(model: str, optimization: str, sources: list[str]) -> str:
+def makefile(model: str, optimization: str, sources: list[str], own_flags: dict[str, str] | None = None) -> str:
     """A Makefile that builds the bundle's units with the same flags as the Python library (so
-    ``make stack`` reproduces the header's stack figures)."""
+    ``make stack`` reproduces the header's stack figures); ``own_flags``: units compiled with
+    their own -O flags (after $(CFLAGS), so they win)."""
     objects = [f[:-2] + ".o" for f in sources]
     floats = [f[:-2] + "_float.o" for f in sources]
     stacks = [f[:-2] + "_stack.o" for f in sources]
     rules = []
     for source, obj, flt, stk in zip(sources, objects, floats, stacks):
         header = f" {model}.h" if source in (api_file(model), hash_file(model)) else ""
-        rules += [f"{obj}: {source}{header}", f"\t$(CC) $(CFLAGS) -fPIC -c -o $@ {source}",
-                  f"{flt}: {source}{header}", f"\t$(CC) $(CFLAGS) -Wdouble-promotion -DSYMKF_FLOAT -c -o $@ {source}",
-                  f"{stk}: {source}{header}", f"\t$(CC) $(CFLAGS) -fPIC {STACK_FLAGS} -c -o $@ {source}", ""]
+        cflags = "$(CFLAGS)" + (f" {own_flags[source]}" if own_flags and source in own_flags else "")
+        rules += [f"{obj}: {source}{header}", f"\t$(CC) {cflags} -fPIC -c -o $@ {source}",
+                  f"{flt}: {source}{header}", f"\t$(CC) {cflags} -Wdouble-promotion -DSYMKF_FLOAT -c -o $@ {source}",
+                  f"{stk}: {source}{header}", f"\t$(CC) {cflags} -fPIC {STACK_FLAGS} -c -o $@ {source}", ""]
     return f"""# {GENERATED_NOTICE.format(model=model)}
 # Builds the flight bundle with only a C99 compiler and libm (make -j to compile units in parallel):
 #   make            lib{model}.so and lib{model}.a (double)

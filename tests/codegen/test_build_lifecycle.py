@@ -229,7 +229,8 @@ def test_export_bundle_anywhere(tmp_path, write_model, private_build):
 @pytest.mark.parametrize("option, message", [("precision=half", "precision: expected one of"),
                                              ("rk4_substeps=0", "rk4_substeps: expected an integer >= 1"),
                                              ("rk4_subteps=2", "unknown codegen option(s) ['rk4_subteps']"),
-                                             ("optimization=fast", "optimization: expected compiler flags")])
+                                             ("optimization=fast", "optimization: expected compiler flags"),
+                                             ('unit_optimization={"*_k_f.c": "fast"}', "unit_optimization: expected")])
 def test_bad_or_misspelt_codegen_option_is_one_line_and_builds_nothing(tmp_path, write_model, private_build,
                                                                          capsys, option, message):
     from symkf.scenarios.cli import main
@@ -288,6 +289,19 @@ def test_an_edit_recompiles_only_the_functions_whose_code_changed(tmp_path, writ
     assert sorted(measured.compiled) == ["tiny_fn_h_and_jac_gps.c", "tiny_fn_h_gps.c", "tiny_hash.c"]
     write_model(path, drag=0.1)                                                          # back: all from the cache
     assert build_model(str(path)).compiled == ()
+
+
+def test_units_matching_a_pattern_get_their_own_optimization_and_the_same_numbers(tmp_path, write_model,
+                                                                                    private_build):
+    path = write_model(tmp_path / "tracker.py")
+    faster = load(str(path), unit_optimization={"*_k_ekf_step_*": "-O2 -fno-math-errno"})
+    manifest = json.loads(faster.build.manifest.read_text())
+    assert manifest["unit_optimization"] == {"tiny_k_ekf_step_gps.c": "-O2 -fno-math-errno"}
+    makefile = (faster.build.directory / "Makefile").read_text()
+    assert "\t$(CC) $(CFLAGS) -O2 -fno-math-errno -fPIC -c -o $@ tiny_k_ekf_step_gps.c" in makefile
+    assert "\t$(CC) $(CFLAGS) -fPIC -c -o $@ tiny_k_ekf_predict.c" in makefile
+    assert faster.build.directory.name.startswith("tiny-")                  # a configuration of its own
+    np.testing.assert_array_equal(_filter_numbers(faster), _filter_numbers(load(str(path))))
 
 
 def test_damaged_cached_object_is_recompiled_never_linked(tmp_path, write_model, private_build):
