@@ -687,8 +687,13 @@ def units(bundle: Bundle, content_hash: str) -> dict[str, str]:
     """Every translation unit of the bundle, file name -> C text: the API unit, the hash unit, then
     one per kernel and per function the kernels call (:func:`function_units`)."""
     model = bundle.model_name
-    return {api_file(model): api_unit(bundle), hash_file(model): hash_unit(model, content_hash),
-            **function_units(bundle)}
+    out = {api_file(model): api_unit(bundle), hash_file(model): hash_unit(model, content_hash),
+           **function_units(bundle)}
+    clash = {file[:-2] for file in out} & set(public_functions(bundle))
+    if clash:
+        raise ValueError(f"model '{model}': the internal function(s) {sorted(clash)} would have the name of a "
+                         "public function; rename the measurement or kernel")
+    return out
 
 
 def public_functions(bundle: Bundle) -> list[str]:
