@@ -304,6 +304,24 @@ def test_units_matching_a_pattern_get_their_own_optimization_and_the_same_number
     np.testing.assert_array_equal(_filter_numbers(faster), _filter_numbers(load(str(path))))
 
 
+def test_a_unit_rewritten_while_it_compiles_is_linked_from_its_final_text(private_build):
+    """Units compile as soon as they are written (the model's own functions before the filter
+    families exist): one written again with other text is restarted, one the final code does not
+    have is removed, and the object linked is the final text's."""
+    folder = private_build / "staging"
+    folder.mkdir(parents=True)
+    unit = "int value_{0}(void);\nint value_{0}(void) {{ return {1}; }}\n"
+    with build.UnitCompiler(folder, compiler(), make_config("launcher"), "none.h") as units:
+        units.add({"a.c": unit.format("a", 1), "b.c": unit.format("b", 2)})
+        units.add({"a.c": unit.format("a", 3)})
+        objects, compiled = units.finish(["a.c"])
+    assert compiled == ["a.c"] and objects == [folder / "a.o"]
+    assert sorted(p.name for p in folder.iterdir() if not p.name.startswith("a.")) == []
+    assert subprocess.run(compiler().split() + ["-shared", "-o", "liba.so", "a.o"], cwd=folder).returncode == 0
+    import ctypes
+    assert ctypes.CDLL(str(folder / "liba.so")).value_a() == 3
+
+
 def test_damaged_cached_object_is_recompiled_never_linked(tmp_path, write_model, private_build):
     path = write_model(tmp_path / "tracker.py")
     expected = _filter_numbers(load(str(path)))
