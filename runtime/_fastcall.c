@@ -2,19 +2,24 @@
  *
  * A Step is made once per filter and measurement (symkf/runtime/fastcall.py) from the addresses
  * of the buffers the compiled kernel is bound to: the kernel's `<model>_<kernel>_v` entry, its
- * argument-pointer array, the t and dt buffers and one slot per array argument of the Python call
- * (z, q, mask, u, ...). Calling it with (t, dt, array_0, ..., array_n-1):
+ * argument-pointer array, the t and dt buffers, the filter's clock (its time after the last step)
+ * and one slot per array argument of the Python call (z, q, mask, u, ...). Calling it with
+ * (t, dt, array_0, ..., array_n-1):
  *
  *   1. checks every argument without writing anything: t, dt Python floats (numpy.float64 is
- *      one), finite, dt > 0; each array a native float64 1-D buffer (any stride, e.g. a row of
- *      a column-major matrix) of the slot's size with finite entries (a mask: exactly 0 or 1),
- *      or None where the slot allows it;
+ *      one), finite, dt > 0 (t None: the clock's time); each array a native float64 1-D buffer
+ *      (any stride, e.g. a row of a column-major matrix) of the slot's size with finite entries
+ *      (a mask: exactly 0 or 1; a measurement z: finite where its mask uses it, as the kernel
+ *      reads it), or None where the slot allows it;
  *   2. copies the values into the bound buffers (a None mask writes ones, a None magnetometer
  *      sample zeros, a None input keeps the held value);
- *   3. calls the kernel and returns its status code (an int).
+ *   3. calls the kernel; on success (status 0 or gated) sets the clock to t + dt, counts the
+ *      call (`Step.calls`) and returns the status code (an int).
  *
  * Whatever it does not accept it returns None for, having written nothing: the caller then runs
  * the Python contract (symkf/runtime/contract.py), which accepts or refuses it with a clear error.
+ * A kernel failure (x and P unchanged) also returns None, with the clock and count unchanged:
+ * the Python path then calls again and raises the error with its details.
  * So this file adds speed, never a rule: every call it accepts, the Python path accepts too and
  * writes the very same values. Arrays are read through the buffer protocol; with SYMKF_NUMPY
  * (numpy's headers found at build time) an exact numpy.ndarray is read from its fields instead,
@@ -22,6 +27,7 @@
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
+#include <structmember.h>
 #ifdef SYMKF_NUMPY
 #define NPY_NO_DEPRECATED_API NPY_1_7_API_VERSION
 #include <numpy/arrayobject.h>
@@ -40,7 +46,10 @@ enum { NONE_KEEP = 0,     /* keep the buffer (an input held from the last call; 
        NONE_DECLINE = 3,  /* let Python answer (a required argument) */
        ABSENT = 4 };      /* the kernel has no such argument: only None is accepted here */
 /* How a slot's values are checked: */
-enum { CHECK_FINITE = 0, CHECK_MASK = 1 };
+enum { CHECK_FINITE = 0,  /* every entry finite */
+       CHECK_MASK = 1,    /* every entry exactly 0 or 1 (the availability mask) */
+       CHECK_USED = 2 };  /* finite where the mask slot uses the component (a NaN that is masked
+                             out is never read: the kernel's z_used is 0 there) */
 
 typedef int (*kernel_v)(double *const *args);
 
@@ -57,7 +66,11 @@ typedef struct {
   kernel_v kernel;
   double *const *args;
   double *t, *dt;
+  double *clock;        /* the filter's time after a step (NULL: none; t None is then declined) */
+  int gated;            /* the status code of a gated update (a success: codegen/spec.py) */
   int n_slots;
+  int mask_slot;        /* index of the CHECK_MASK slot, -1 if none */
+  Py_ssize_t calls;     /* calls that took this path and succeeded */
   Slot slots[MAX_SLOTS];
   PyObject *keep_alive;
 } Step;
@@ -125,12 +138,33 @@ static int shape_ok(const Slot *slot, PyObject *o, Input *in) {
 }
 
 /* Phase 1 for one slot: 1 if `o` fits (or is an accepted None), 0 if Python must answer.
-   Never writes a buffer. */
+   Never writes a buffer. A CHECK_USED slot's values are checked afterwards (used_ok). */
 static int accept(const Slot *slot, PyObject *o, Input *in) {
   in->held = 0;
   if (o == Py_None) return slot->if_none != NONE_DECLINE;
   if (slot->if_none == ABSENT) return 0;
-  return shape_ok(slot, o, in) && values_ok(in, slot->size, slot->check);
+  return shape_ok(slot, o, in) && (slot->check == CHECK_USED || values_ok(in, slot->size, slot->check));
+}
+
+/* Whether the mask (given as `o`, read through `in`, or None) uses component i of an n-vector:
+   a mask of n entries per component, a mask of one entry for the whole measurement. */
+static int used(const Slot *mask, PyObject *o, const Input *in, Py_ssize_t i, Py_ssize_t n) {
+  Py_ssize_t j = mask->size == n ? i : 0;
+  if (o != Py_None) return entry(in, j) == 1.0;
+  return mask->if_none == NONE_ONES || (mask->if_none == NONE_KEEP && mask->dst[j] > 0.5);
+}
+
+/* Phase 1 for a CHECK_USED slot (after every slot was accepted): finite where used. */
+static int used_ok(const Step *self, int s, PyObject *const *arrays, const Input *inputs) {
+  const Slot *slot = &self->slots[s];
+  const int m = self->mask_slot;
+  Py_ssize_t i;
+  if (arrays[s] == Py_None) return 1;
+  for (i = 0; i < slot->size; ++i) {
+    int needed = m < 0 || self->slots[m].size == 0 || used(&self->slots[m], arrays[m], &inputs[m], i, slot->size);
+    if (needed && !isfinite(entry(&inputs[s], i))) return 0;
+  }
+  return 1;
 }
 
 static void write_slot(const Slot *slot, PyObject *o, const Input *in) {
@@ -155,9 +189,13 @@ static PyObject *step_call(PyObject *callable, PyObject *const *argv, size_t nar
                  2 + self->n_slots, self->n_slots);
     return NULL;
   }
-  if (!finite_float(argv[0], &t) || !finite_float(argv[1], &dt) || !(dt > 0.0)) Py_RETURN_NONE;
+  if (argv[0] == Py_None && self->clock != NULL) t = *self->clock;
+  else if (!finite_float(argv[0], &t)) Py_RETURN_NONE;
+  if (!finite_float(argv[1], &dt) || !(dt > 0.0)) Py_RETURN_NONE;
   for (i = 0; i < self->n_slots; ++i) inputs[i].held = 0;
   for (i = 0; i < self->n_slots && fits; ++i) fits = accept(&self->slots[i], argv[2 + i], &inputs[i]);
+  for (i = 0; i < self->n_slots && fits; ++i)
+    if (self->slots[i].check == CHECK_USED) fits = used_ok(self, i, argv + 2, inputs);
   if (fits) {
     if (self->t != NULL) *self->t = t;
     if (self->dt != NULL) *self->dt = dt;
@@ -166,6 +204,9 @@ static PyObject *step_call(PyObject *callable, PyObject *const *argv, size_t nar
   for (i = 0; i < self->n_slots; ++i) if (inputs[i].held) PyBuffer_Release(&inputs[i].view);
   if (!fits) Py_RETURN_NONE;
   code = self->kernel(self->args);
+  if (code != 0 && code != self->gated) Py_RETURN_NONE;   /* state unchanged: Python raises it */
+  if (self->clock != NULL) *self->clock = t + dt;
+  ++self->calls;
   return PyLong_FromLong(code);
 }
 
@@ -173,17 +214,20 @@ static void *address(PyObject *o) {
   return o == Py_None ? NULL : PyLong_AsVoidPtr(o);
 }
 
-/* Step(kernel, args, t, dt, slots, keep_alive): addresses as ints (t, dt may be None); slots a
-   tuple of (address, size, if_none, check); keep_alive holds the buffers those addresses point into. */
+/* Step(kernel, args, t, dt, clock, slots, gated, keep_alive): addresses as ints (t, dt, clock may
+   be None); slots a tuple of (address, size, if_none, check); gated the status code of a gated
+   update; keep_alive holds the buffers those addresses point into. */
 static PyObject *step_new(PyTypeObject *type, PyObject *a, PyObject *kw) {
-  PyObject *kernel, *args, *t, *dt, *slots, *keep_alive;
+  PyObject *kernel, *args, *t, *dt, *clock, *slots, *keep_alive;
+  int gated;
   Step *self;
   Py_ssize_t i;
   if (kw != NULL && PyDict_GET_SIZE(kw)) {
     PyErr_SetString(PyExc_TypeError, "Step takes positional arguments only");
     return NULL;
   }
-  if (!PyArg_ParseTuple(a, "OOOOO!O", &kernel, &args, &t, &dt, &PyTuple_Type, &slots, &keep_alive)) return NULL;
+  if (!PyArg_ParseTuple(a, "OOOOOO!iO", &kernel, &args, &t, &dt, &clock, &PyTuple_Type, &slots, &gated,
+                        &keep_alive)) return NULL;
   if (PyTuple_GET_SIZE(slots) > MAX_SLOTS) {
     PyErr_Format(PyExc_ValueError, "Step: at most %d array arguments", MAX_SLOTS);
     return NULL;
@@ -195,16 +239,22 @@ static PyObject *step_new(PyTypeObject *type, PyObject *a, PyObject *kw) {
   self->args = (double *const *) address(args);
   self->t = (double *) address(t);
   self->dt = (double *) address(dt);
+  self->clock = (double *) address(clock);
+  self->gated = gated;
+  self->calls = 0;
+  self->mask_slot = -1;
   self->n_slots = (int) PyTuple_GET_SIZE(slots);
   for (i = 0; i < PyTuple_GET_SIZE(slots); ++i) {
     Slot *s = &self->slots[i];
     PyObject *dst;
     if (!PyArg_ParseTuple(PyTuple_GET_ITEM(slots, i), "Onii", &dst, &s->size, &s->if_none, &s->check)) break;
     s->dst = (double *) address(dst);
-    if (s->size < 0 || s->size > MAX_SIZE || s->if_none < NONE_KEEP || s->if_none > ABSENT || (s->size > 0 && s->dst == NULL)) {
-      PyErr_SetString(PyExc_ValueError, "Step: bad slot (address, 0 <= size <= 64, if_none 0..4, check)");
+    if (s->size < 0 || s->size > MAX_SIZE || s->if_none < NONE_KEEP || s->if_none > ABSENT || (s->size > 0 && s->dst == NULL)
+        || s->check < CHECK_FINITE || s->check > CHECK_USED || (s->check == CHECK_MASK && self->mask_slot >= 0)) {
+      PyErr_SetString(PyExc_ValueError, "Step: bad slot (address, 0 <= size <= 64, if_none 0..4, check 0..2, one mask)");
       break;
     }
+    if (s->check == CHECK_MASK) self->mask_slot = (int) i;
   }
   if (PyErr_Occurred() || self->kernel == NULL || self->args == NULL) {
     if (!PyErr_Occurred()) PyErr_SetString(PyExc_ValueError, "Step: kernel and args addresses are required");
@@ -232,10 +282,16 @@ static void step_dealloc(Step *self) {
   Py_TYPE(self)->tp_free((PyObject *) self);
 }
 
+static PyMemberDef step_members[] = {
+  {"calls", T_PYSSIZET, offsetof(Step, calls), READONLY, "calls that took the fast path and succeeded"},
+  {NULL, 0, 0, 0, NULL},
+};
+
 static PyTypeObject StepType = {
   PyVarObject_HEAD_INIT(NULL, 0)
   .tp_name = "_symkf_fastcall.Step",
-  .tp_doc = "One bound filter step: Step(kernel, args, t, dt, slots, keep_alive)(t, dt, *arrays) -> int | None",
+  .tp_doc = "One bound filter step: Step(kernel, args, t, dt, clock, slots, gated, keep_alive)(t, dt, *arrays) -> int | None",
+  .tp_members = step_members,
   .tp_basicsize = sizeof(Step),
   .tp_flags = Py_TPFLAGS_DEFAULT | Py_TPFLAGS_HAVE_GC | Py_TPFLAGS_HAVE_VECTORCALL,
   .tp_new = step_new,
@@ -272,5 +328,6 @@ PyMODINIT_FUNC PyInit__symkf_fastcall(void) {
   PyModule_AddIntConstant(m, "ABSENT", ABSENT);
   PyModule_AddIntConstant(m, "CHECK_FINITE", CHECK_FINITE);
   PyModule_AddIntConstant(m, "CHECK_MASK", CHECK_MASK);
+  PyModule_AddIntConstant(m, "CHECK_USED", CHECK_USED);
   return m;
 }

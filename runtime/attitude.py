@@ -95,9 +95,8 @@ class AttitudeFilter(Filter):
             return 0
         fast = self._fast_sample
         if fast is not None and nan == "raise":
-            code = fast(self.t, dt, q_s, None, omega_g)   # None: not a plain call, the Python path decides
-            if code == 0:
-                self.t += float(dt)
+            code = fast(None, dt, q_s, None, omega_g)   # None: not a plain call, the Python path decides
+            if code is not None:
                 return code
         omega_g = contract.finite_array("omega_g", omega_g, (3,))
         return self._step(self.MEASUREMENT, self.t, dt, {"z": q_s, "q": None, "mask": None}, omega_g, nan)

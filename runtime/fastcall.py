@@ -29,6 +29,7 @@ import numpy
 
 from symkf.codegen.build import (BuildError, _lock, compiler, compiler_identity, private_root, run_compiler,
                                  sha256_file)
+from symkf.codegen.spec import STATUS_GATED
 
 SOURCE = Path(__file__).resolve().parent / "_fastcall.c"
 MODULE = "_symkf_fastcall"
@@ -113,28 +114,36 @@ def _import(library: Path):
     return module
 
 
-def step(bound, t, dt, slots: list[tuple], keep_alive):
+def step(bound, t, dt, clock, slots: list[tuple], keep_alive):
     """A ``Step`` over a bound compiled kernel, or None without the extension or a C kernel.
 
     Args:
         bound: a :class:`~symkf.runtime.backends.BoundCall` of the compiled backend.
         t, dt: the kernel's time and step-length buffers (None if it has none).
+        clock: the filter's time, a float64 buffer of one entry: set to t + dt by a successful
+            step; a call with t None starts at it.
         slots: per array argument of the Python call, ``(buffer or None, if_none, check)`` with
             ``if_none`` one of "keep", "ones", "zeros", "decline", "absent" and ``check``
-            "finite" or "mask".
+            "finite", "mask" (exactly 0 or 1; one slot at most) or "used" (finite where the
+            mask slot uses the component: a measurement z, whose masked components the kernel
+            never reads).
         keep_alive: what owns the buffers (held by the Step).
+
+    Calling the Step returns the status code (0 or SYMKF_GATED), or None having written nothing
+    (or, after a kernel failure, having written only the kernel's input buffers): the caller's
+    Python path then accepts or refuses the call. ``Step.calls`` counts the calls it took.
     """
     ext = extension()
     if ext is None or getattr(bound, "c_address", None) is None:
         return None
-    buffers = [b for b, _, _ in slots] + [t, dt]
+    buffers = [b for b, _, _ in slots] + [t, dt, clock]
     if any(b is not None and (b.size > ext.MAX_SIZE or b.ndim != 1 or b.dtype != float or not b.flags.c_contiguous)
            for b in buffers):
         return None                      # a float32 build, a long or unusual buffer: the Python path
     if_none = {"keep": ext.NONE_KEEP, "ones": ext.NONE_ONES, "zeros": ext.NONE_ZEROS,
                "decline": ext.NONE_DECLINE, "absent": ext.ABSENT}
-    check = {"finite": ext.CHECK_FINITE, "mask": ext.CHECK_MASK}
+    check = {"finite": ext.CHECK_FINITE, "mask": ext.CHECK_MASK, "used": ext.CHECK_USED}
     table = tuple((None if b is None else b.ctypes.data, 0 if b is None else b.size, if_none[n], check[c])
                   for b, n, c in slots)
-    address = [None if b is None else b.ctypes.data for b in (t, dt)]
-    return ext.Step(bound.c_address, bound.c_args, *address, table, (keep_alive, bound))
+    address = [None if b is None else b.ctypes.data for b in (t, dt, clock)]
+    return ext.Step(bound.c_address, bound.c_args, *address, table, STATUS_GATED, (keep_alive, bound, clock))

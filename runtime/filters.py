@@ -113,6 +113,10 @@ class Filter:
     #: What the fast path writes for an omitted (None) array: a mask is all ones, an input ``u``
     #: keeps its held value; any other argument with values is required (the Python path says so).
     FAST_NONE = {"mask": "ones", "u": "keep"}
+    #: How the fast path checks an array: a mask is exactly 0 or 1; z must be finite where the
+    #: mask uses it (the kernel never reads a masked component; the Python path accepts a NaN
+    #: there too); anything else finite.
+    FAST_CHECK = {"mask": "mask", "z": "used"}
 
     def __init__(self, compiled, spec, x0, P0=None, Q=None, R: dict | None = None, p=None,
                  gate: dict | None = None, **scalars):
@@ -120,6 +124,7 @@ class Filter:
         self.family = self.spec.name
         self.model = compiled.model
         self._backend = compiled.backend
+        self._clock = np.zeros(1)           # the filter's time t (the fast path of step sets it in C)
         self.kernels = {name: self._backend.kernels[name] for name in self.spec.kernel_names()}
         self._dtype = getattr(self._backend, "dtype", np.dtype(np.float64))
         self._scaling = StateScaling.of(self.model)
@@ -192,6 +197,21 @@ class Filter:
         self._fast_default = self._fast.get(self._default)
 
     @property
+    def t(self) -> float:
+        """The filter's time: the end of its last step (or as set)."""
+        return float(self._clock[0])
+
+    @t.setter
+    def t(self, value) -> None:
+        self._clock[0] = contract.real("t", value)
+
+    @property
+    def fast_calls(self) -> int:
+        """How many calls of ``step`` took the C fast path (since it was last switched on)."""
+        steps = list(self._fast.values()) + [getattr(self, "_fast_sample", None)]
+        return sum(step.calls for step in steps if step is not None)
+
+    @property
     def fast_path(self) -> bool:
         """Whether plain ``step`` calls take the C fast path. Set False to send every call through
         the Python contract (same results; for comparisons), True to restore it."""
@@ -214,9 +234,9 @@ class Filter:
                 slots.append((None, "absent", "finite"))
             else:
                 required = "decline" if buffer.size else "keep"
-                slots.append((buffer, self.FAST_NONE.get(key, required), "mask" if key == "mask" else "finite"))
+                slots.append((buffer, self.FAST_NONE.get(key, required), self.FAST_CHECK.get(key, "finite")))
         return fastcall.step(self._calls[self.spec.step[name]], self._buffers.get("t"), self._buffers.get("dt"),
-                             slots, (self._buffers, buffers))
+                             self._clock, slots, (self._buffers, buffers))
 
     def kernel_buffer(self, name: str, measurement: str | None = None) -> np.ndarray:
         """The writable buffer a bound kernel reads (no checks: for benchmarks that restore the
@@ -379,9 +399,8 @@ class Filter:
         or SYMKF_GATED (prediction applied, update refused by the gate)."""
         fast = self._fast_default if measurement is None else self._fast.get(measurement) if type(measurement) is str else None
         if fast is not None and nan == "raise":
-            code = fast(t, dt, z, q, mask, u)          # None: not a plain call, the Python path decides
-            if code == 0 or code == STATUS_GATED:
-                self.t = float(t) + float(dt)     # (a numpy scalar + float is slow numpy arithmetic)
+            code = fast(t, dt, z, q, mask, u)     # sets self.t; None: not a plain call, the Python path decides
+            if code is not None:
                 return code
         name = self._measurement_name(measurement, "step")
         return self._step(name, t, dt, {"z": z, "q": q, "mask": mask}, u, nan)

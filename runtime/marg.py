@@ -107,11 +107,8 @@ class MargFilter(Filter):
     def step(self, dt: float, gyro, acc, mag=None, nan: str = "raise") -> np.ndarray:
         """One sample: gyro (rad/s), acc, mag (any units; zero vector = skip that correction)."""
         fast = self._fast_sample
-        if fast is not None and nan == "raise":
-            code = fast(self.t, dt, acc, mag, gyro)    # None: not a plain call, the Python path decides
-            if code == 0:
-                self.t += float(dt)
-                return self.x
+        if fast is not None and nan == "raise" and fast(None, dt, acc, mag, gyro) is not None:
+            return self.x                       # (None: not a plain call, the Python path decides)
         gyro = contract.finite_array("gyro", gyro, (3,))
         self._step(self.mode, None, dt, self._samples(acc, mag), gyro, nan)
         return self.q

@@ -11,6 +11,8 @@ from symkf.runtime import SymkfError, fastcall, load
 from symkf.runtime.attitude import attitude_filter
 from symkf.runtime.marg import MargFilter
 from symkf.scenarios.launcher.truth import propagate, radar_track
+from symkf.scenarios.marg import ekf
+from symkf.scenarios.marg.data import Recording
 
 P0 = np.diag([10.0, 1e-4, 1e-4, 1000.0, 1e-5, 1e-5]) ** 2
 Q = np.diag([1.0, 1e-8, 1e-8, 1.0, 1e-14, 1e-14])
@@ -94,7 +96,6 @@ BIG_ENDIAN = np.array([1000.0, 0.3, 0.2], dtype=">f8")
 #: (t, dt, z, q, mask, u) calls the C fast path must hand to the Python contract.
 DECLINED = {
     "t string": ("0", 0.05, _radar(1), STATION, None, None),
-    "t None": (None, 0.05, _radar(1), STATION, None, None),
     "t NaN": (np.nan, 0.05, _radar(1), STATION, None, None),
     "t int": (0, 0.05, _radar(1), STATION, None, None),
     "t float32": (np.float32(0.0), 0.05, _radar(1), STATION, None, None),
@@ -110,6 +111,7 @@ DECLINED = {
     "z int": (0.0, 0.05, np.array([1000, 0, 0]), STATION, None, None),
     "z complex": (0.0, 0.05, _radar(1) + 0j, STATION, None, None),
     "z NaN": (0.0, 0.05, np.array([np.nan, 0.3, 0.2]), STATION, None, None),
+    "z NaN used": (0.0, 0.05, np.array([1000.0, np.nan, 0.2]), STATION, np.array([1.0, 1.0, 0.0]), None),
     "z Inf": (0.0, 0.05, np.array([1000.0, np.inf, 0.2]), STATION, None, None),
     "z big-endian": (0.0, 0.05, BIG_ENDIAN, STATION, None, None),
     "z object": (0.0, 0.05, np.array([1.0, 2.0, 3.0], dtype=object), STATION, None, None),
@@ -131,6 +133,33 @@ def test_fast_path_declines_and_writes_nothing(launcher_compiled, case):
     before = _buffers(f)
     assert f._fast_default(*DECLINED[case]) is None
     assert all(np.array_equal(a, b, equal_nan=True) for a, b in zip(before, _buffers(f)))
+
+
+def test_what_the_python_path_accepts_the_fast_path_takes_alike(launcher_compiled):
+    """t None (the filter's time) and a NaN in a component the mask leaves out (never read by the
+    kernel): accepted by the contract, so taken by the fast path with the very same result."""
+    z = np.array([Z[1][0], np.nan, Z[1][2]])
+    fast, slow = launcher_compiled.ekf(X0, P0, Q), _python_path(launcher_compiled.ekf(X0, P0, Q))
+    for f in (fast, slow):
+        f.t = TIMES[0]
+        assert f.step(None, 0.05, z, q=STATION, mask=np.array([1.0, 0.0, 1.0])) == 0
+    assert fast.fast_calls == 1 and slow.fast_calls == 0
+    for a, b in zip(_state(fast), _state(slow)):
+        assert np.array_equal(a, b)
+    assert fast.t == slow.t == TIMES[0] + 0.05
+    assert np.array_equal(fast.kernel_buffer("z", "radar"), z, equal_nan=True)
+
+
+def test_the_fast_path_counts_only_the_calls_it_took(launcher_compiled):
+    f = launcher_compiled.ekf(X0, P0, Q)
+    f.step(TIMES[0], 0.05, Z[1], q=STATION)
+    f.step(TIMES[1], 0.05, list(Z[2]), q=STATIONS[2])        # a list: the Python path
+    with pytest.raises(ValueError):
+        f.step(TIMES[2], 0.05, Z[3], q=STATIONS[3], mask=np.array([1.0, 0.5, 1.0]))
+    assert f.fast_calls == 1
+    f.fast_path = False
+    f.step(TIMES[2], 0.05, Z[3], q=STATIONS[3])
+    assert f.fast_calls == 0 and not f.fast_path
 
 
 def test_rows_of_a_column_major_record_take_the_fast_path(launcher_compiled):
@@ -180,3 +209,33 @@ def test_without_the_extension_every_call_takes_the_python_path(tmp_path):
     proc = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert proc.stdout.startswith("True True disabled by SYMKF_FASTCALL=0")
+
+
+def _still_then_turning(n: int = 700, rate: float = 285.714) -> Recording:
+    """A MARG recording: 2 s at rest (the gyro-at-rest measurement switches on after 1.5 s), then a
+    turn about the vertical; noisy gyro, accelerometer and magnetometer (ENU field, dip 60 deg)."""
+    rng = np.random.default_rng(11)
+    time = np.arange(n) / rate
+    gyro = rng.normal(0.0, 1e-3, (n, 3)) + np.where(time[:, None] > 2.0, [0.0, 0.0, 0.5], 0.0)
+    acc = rng.normal([0.0, 0.0, 9.81], 0.02, (n, 3))
+    mag = rng.normal([0.0, 25.0, -43.0], 0.3, (n, 3))
+    return Recording("still_then_turning", time, gyro, acc, mag)
+
+
+def test_the_marg_mekf_common_call_takes_the_fast_path():
+    """models/marg_ekf.py as scenarios/marg/ekf.py feeds it: 7 components (acc direction, heading,
+    gyro at rest) with per-sample masks, the magnetometer as q, the gyro as u, rows of column-major
+    records. Every call takes the fast path, with the Python path's numbers bit for bit."""
+    compiled = load("marg_ekf", backend="compiled")
+    recording = _still_then_turning()
+    z, mask = np.asfortranarray(ekf.measurements(recording)), np.asfortranarray(ekf.masks(recording))
+    z[mask == 0] = np.nan                           # masked out: never read, taken all the same
+    mag, gyro, dt = np.asfortranarray(recording.mag), np.asfortranarray(recording.gyro), recording.dt
+    fast, slow = ekf.make_filter(compiled, recording), _python_path(ekf.make_filter(compiled, recording))
+    assert 0 < mask[:, 4].sum() < len(recording) - 1         # both states of the rest mask are met
+    for k in range(1, len(recording)):
+        for f in (fast, slow):
+            assert f.step(recording.time[k - 1], dt[k], z[k], "marg", q=mag[k], mask=mask[k], u=gyro[k]) == 0
+    assert fast.fast_calls == len(recording) - 1 and slow.fast_calls == 0
+    for a, b in zip(_state(fast), _state(slow)):
+        assert np.array_equal(a, b)
