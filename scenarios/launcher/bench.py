@@ -3,12 +3,18 @@
 Paths (rows ``{"filter", "path", "us_per_step", ...}``):
 - ``numpy_reference``: runtime/reference.py (NumPy algebra, model through CasADi calls);
 - ``compiled_step``: ``KalmanFilter.step`` — one C call per step from Python (the C fast path of
-  runtime/fastcall.py: checks, copies and kernel call in one call);
-- ``compiled_step_python``: the same calls with the fast path off (``filter.fast_path = False``):
-  every call through the Python contract, as before issue 12; timed in alternate batches with
-  ``compiled_step`` so that both see the same machine load;
+  runtime/fastcall.py: checks, copies and kernel call in one call), each step's inputs ready as a
+  measurement arrives (t a float, z and q arrays of their own), prepared before the timing as the
+  C loop reads its inputs before its timing;
+- ``compiled_step_rows``: the same calls with t, z and q indexed from the (N, 3) record inside
+  the timed loop (three numpy indexings, ~0.1 µs each: the loop's cost, not the call's);
+- ``compiled_step_python``: the calls of ``compiled_step`` with the fast path off
+  (``filter.fast_path = False``): every call through the Python contract, as before issue 12;
+  the three are timed in alternate batches so that they see the same machine load;
 - ``c_loop``: the same generated ``launcher_<filter>_step_radar`` called in a C loop (no Python),
-  from a harness compiled against build/launcher/ with the library's flags;
+  from a harness compiled against build/launcher/ with the library's flags; timed in rounds
+  alternating with the step paths above (``ROUNDS``; medians over rounds), so that the ratio
+  ``compiled_step / c_loop`` compares figures taken under the same load;
 - ``compiled_run``: per step inside one ``launcher_<filter>_step_radar_run`` call;
 - ``filterpy`` (when FilterPy is installed, ``pip install -e .[bench]``): FilterPy's EKF and UKF
   on the same model, calling our compiled f_d, F, h, H, with the same kappa.
@@ -91,22 +97,53 @@ def _options(family: str) -> dict:
     return {"kappa": TUNING["kappa"]} if family == "ukf" else {}
 
 
-def time_compiled_step(model, family: str, work: Workload, batch: int = 100) -> dict[str, float]:
-    """µs per ``step`` call: ``compiled_step`` (C fast path) and ``compiled_step_python`` (the
-    Python contract path), each on its own filter over the same steps, in alternate batches."""
-    filters = {path: model.filter(family, work.x0, work.P0, TUNING["Q"], **_options(family))
-               for path in ("compiled_step", "compiled_step_python")}
+#: Rounds of the step timing: each round times the Python step paths, then the C loop, so that the
+#: ratio compiled_step / c_loop compares figures taken under the same machine load.
+ROUNDS = 5
+
+
+def time_steps_and_c_loop(model, work: Workload) -> dict[str, dict[str, float]]:
+    """µs per step of the Python step paths and of ``c_loop``, per filter: medians over
+    :data:`ROUNDS` rounds of ``work.steps / ROUNDS`` steps, each round timing the Python paths
+    (alternate batches) and then the C loop."""
+    steps = max(100, work.steps // ROUNDS)
+    rounds = []
+    for _ in range(ROUNDS):
+        figures = {family: time_compiled_step(model, family, work, steps=steps) for family in FILTERS}
+        loop = time_c_loop(work, steps)
+        for family in FILTERS:
+            figures[family]["c_loop"] = loop[family]["us_per_step"]
+        rounds.append(figures)
+    return {family: {path: statistics.median(r[family][path] for r in rounds) for path in rounds[0][family]}
+            for family in FILTERS}
+
+
+def time_compiled_step(model, family: str, work: Workload, batch: int = 100, steps: int | None = None) -> dict[str, float]:
+    """µs per ``step`` call: ``compiled_step`` and ``compiled_step_rows`` (C fast path, inputs
+    ready or indexed in the loop) and ``compiled_step_python`` (the Python contract path), each
+    on its own filter over the same ``steps`` (default ``work.steps``), in alternate batches."""
+    paths = ("compiled_step", "compiled_step_rows", "compiled_step_python")
+    filters = {path: model.filter(family, work.x0, work.P0, TUNING["Q"], **_options(family)) for path in paths}
     filters["compiled_step_python"].fast_path = False
     times, z, q, dt = work.base_times, work.z, work.q, 1.0 / RATE_HZ
+    ready = [(float(times[i - 1]), z[i].copy(), q[i].copy()) for i in range(len(times))]
     batches = {path: [] for path in filters}
-    for k0 in range(0, work.steps, batch):
+    for k0 in range(0, work.steps if steps is None else steps, batch):
         for path, f in filters.items():
             start = time.perf_counter()
-            for k in range(k0, k0 + batch):
-                i = work.index(k)
-                if i == 1:                      # the segment starts again (one batch's median is spared)
-                    f.x, f.P = work.x0, work.P0
-                f.step(times[i - 1], dt, z[i], q=q[i])
+            if path == "compiled_step_rows":
+                for k in range(k0, k0 + batch):
+                    i = work.index(k)
+                    if i == 1:                  # the segment starts again (one batch's median is spared)
+                        f.x, f.P = work.x0, work.P0
+                    f.step(times[i - 1], dt, z[i], q=q[i])
+            else:
+                for k in range(k0, k0 + batch):
+                    i = work.index(k)
+                    if i == 1:
+                        f.x, f.P = work.x0, work.P0
+                    t, z_i, q_i = ready[i]
+                    f.step(t, dt, z_i, q=q_i)
             batches[path].append(time.perf_counter() - start)
     return {path: _median_us(b, batch) for path, b in batches.items()}
 
@@ -309,12 +346,12 @@ def measure(steps: int, reference_steps: int, campaign: bool, instructions: bool
             scheduler: str | None = None) -> dict:
     model = load("launcher", backend="compiled")
     work = Workload(steps)
-    c_loop = time_c_loop(work, steps, instructions)
+    c_loop = time_c_loop(work, steps, instructions) if instructions else {family: {} for family in FILTERS}
+    interleaved = time_steps_and_c_loop(model, work)
     rows = []
     for family in FILTERS:
         figures = {"numpy_reference": time_reference(family, work, reference_steps),
-                   **time_compiled_step(model, family, work),
-                   "c_loop": c_loop[family]["us_per_step"],
+                   **interleaved[family],
                    "compiled_run": time_compiled_run(model, family, work),
                    "filterpy": time_filterpy(model, family, work, reference_steps)}
         for path, value in figures.items():
@@ -412,6 +449,7 @@ def ratios(rows: list[dict]) -> dict:
         step = value[(family, "compiled_step")]
         out[family] = {"numpy_reference/compiled_step": value[(family, "numpy_reference")] / step,
                        "compiled_step/c_loop": step / value[(family, "c_loop")],
+                       "compiled_step_rows/c_loop": value[(family, "compiled_step_rows")] / value[(family, "c_loop")],
                        "compiled_step_python/c_loop": value[(family, "compiled_step_python")] / value[(family, "c_loop")],
                        "compiled_run/c_loop": value[(family, "compiled_run")] / value[(family, "c_loop")]}
         if (family, "filterpy") in value:
@@ -424,7 +462,8 @@ def ratios(rows: list[dict]) -> dict:
 
 def human_table(report: dict) -> str:
     value = {(r["filter"], r["path"]): r["us_per_step"] for r in report["rows"]}
-    paths = [p for p in ("numpy_reference", "filterpy", "compiled_step_python", "compiled_step", "compiled_run", "c_loop")
+    paths = [p for p in ("numpy_reference", "filterpy", "compiled_step_python", "compiled_step_rows", "compiled_step",
+                         "compiled_run", "c_loop")
              if ("ekf", p) in value]
     lines = [f"{'path':<18}{'EKF us/step':>14}{'UKF us/step':>14}{'UKF/EKF':>10}",
              f"{'paper (MATLAB)':<18}{report['paper_ms_per_step']['ekf'] * 1e3:>14.1f}"
