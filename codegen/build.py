@@ -479,7 +479,7 @@ class _Unit:
 class UnitCompiler:
     """A build's C units compiled to objects while the build goes on: each unit as soon as its text
     is known (:meth:`add`: written, then compiled in the background, largest first, one compiler
-    per core), then :meth:`finish` waits for them.
+    per core but one while this process is still generating), then :meth:`finish` waits for them.
 
     Objects are cached in ``<root>/.objects``: an entry ``<key>.o`` (+ ``<key>.ci``, the call graph
     with stack frames) is named by the hash of the compiler's identity, the unit's flags and its
@@ -495,7 +495,8 @@ class UnitCompiler:
         self.suffixes = (".o", ".ci") if self.stack else (".o",)
         self.cache = directory.parent / ".objects"
         self.cache.mkdir(exist_ok=True)
-        self.pool = CompilerPool(directory, jobs)
+        self.jobs = max(1, jobs or os.cpu_count() or 1)
+        self.pool = CompilerPool(directory, max(1, self.jobs - 1))      # this process is busy generating
         self.units: dict[str, _Unit] = {}
 
     def __enter__(self) -> "UnitCompiler":
@@ -535,6 +536,7 @@ class UnitCompiler:
         """Start the units that include the header, wait for every compile and cache the new
         objects. Returns the objects of ``sources`` (in order) and the units compiled; units added
         but not in ``sources`` (early ones the final code does not have) are removed."""
+        self.pool.jobs = self.jobs                                       # done generating: every core compiles
         for file in set(self.units) - set(sources):
             unit = self.units.pop(file)
             if unit.job is not None:
