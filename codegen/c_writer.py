@@ -145,11 +145,38 @@ def function_units(bundle: Bundle) -> dict[str, str]:
         about = (f" * Kernel {kernel.name}: {kernel.doc}\n * Its entry point {symbol} is called by {api_file(model)};"
                  f" see {model}.h. */" if kernel else
                  f" * {code.signatures[number]}: called by the kernels' units (CasADi's code). */")
+        text = _plain_names(code.unit(number, symbols), f"{symbol}_casadi")
         units[f"{symbol}.c"] = ascii_text("\n".join([
             f"/* {GENERATED_NOTICE.format(model=model)}", about,
-            "#include <math.h>", "", *_precision_lines(bundle), REAL_BLOCK, "", math_block(), "", INTERNAL_BLOCK, "",
-            code.unit(number, symbols)]))
+            "#include <math.h>", "", *_precision_lines(bundle), REAL_BLOCK, "", math_block(text), "", INTERNAL_BLOCK, "",
+            text]))
     return units
+
+
+_PREFIXED = re.compile(r"^#define (\w+) CASADI_PREFIX\((\w+)\)$", flags=re.M)
+
+
+def _plain_names(source: str, prefix: str) -> str:
+    """``#define casadi_f0 <prefix>_f0`` instead of CasADi's token-pasting CASADI_PREFIX machinery
+    (MISRA C:2012 rule 20.10; its macros would be unused, rule 2.5)."""
+    source = _PREFIXED.sub(lambda m: f"#define {m.group(1)} {prefix}_{m.group(2)}", source)
+    return _drop_directive_block(source, "#ifdef CASADI_CODEGEN_PREFIX").replace(
+        "/* How to prefix internal symbols */\n", "")
+
+
+def _drop_directive_block(source: str, opening: str) -> str:
+    """Remove the preprocessor block that starts with the line ``opening`` (to its #endif)."""
+    lines = source.splitlines()
+    for start, line in enumerate(lines):
+        if line.strip() == opening:
+            depth = 0
+            for end in range(start, len(lines)):
+                word = lines[end].strip().split(" ")[0]
+                depth += word in ("#if", "#ifdef", "#ifndef")
+                depth -= word == "#endif"
+                if depth == 0:
+                    return "\n".join(lines[:start] + lines[end + 1:]) + "\n"
+    return source
 
 
 #: A numbered symbol of CasADi's code: a function (casadi_f3), a sparsity table (casadi_s2), ...
@@ -258,7 +285,8 @@ class CasadiCode:
                 local[used], counts[kind] = f"{kind}{counts[kind]}", counts[kind] + 1
         body = _NUMBERED.sub(lambda m: local.get(m.group(0), m.group(0)), body)
         statics = sorted({local.get(name, name) for name in defined if name != number}, key=_natural)
-        prototypes = sorted({symbols[name] for name in declared})
+        # its own symbol too: declared before it is defined (MISRA C:2012 rule 8.4)
+        prototypes = sorted({symbols[name] for name in declared} | {symbols[number]})
         return "\n".join(self._preamble(symbols[number], body)
                          + ["/* Add prefix to internal symbols */"]
                          + [f"#define {name} CASADI_PREFIX({name[len('casadi_'):]})" for name in statics]
@@ -395,12 +423,16 @@ def _void_unused_parameters(source: str) -> str:
     return "\n".join(out) + "\n"
 
 
-def math_block() -> str:
-    """The SYMKF_<NAME> macros: double functions, or float ones under -DSYMKF_FLOAT."""
+def math_block(code: str | None = None) -> str:
+    """The SYMKF_<NAME> macros: double functions, or float ones under -DSYMKF_FLOAT; with
+    ``code``, only those it calls (no unused macro: MISRA C:2012 rule 2.5)."""
+    names = [n for n in MATH_FUNCTIONS if code is None or f"SYMKF_{n.upper()}(" in code]
+    if not names:
+        return "/* (no math function called) */"
     lines = ["#ifdef SYMKF_FLOAT"]
-    lines += [f"#define SYMKF_{name.upper()} {name}f" for name in MATH_FUNCTIONS]
+    lines += [f"#define SYMKF_{name.upper()} {name}f" for name in names]
     lines += ["#else"]
-    lines += [f"#define SYMKF_{name.upper()} {name}" for name in MATH_FUNCTIONS]
+    lines += [f"#define SYMKF_{name.upper()} {name}" for name in names]
     lines += ["#endif"]
     return "\n".join(lines)
 
@@ -646,13 +678,19 @@ def api_unit(bundle: Bundle) -> str:
     model = bundle.model_name
     prototypes = [f"SYMKF_INTERNAL int {raw_name(model, k)}(const casadi_real **arg, casadi_real **res, int *iw, "
                   "casadi_real *w, int mem);" for k in bundle.kernels]
+    by_name = {k.name: k for k in bundle.kernels}
+    functions = [FINITE_HELPER]
+    for kernel in bundle.kernels:
+        functions.append(_wrapper(model, kernel, by_name))
+        if kernel.runnable:
+            functions.append(_run_loop(model, kernel))
     parts = [f"/* {GENERATED_NOTICE.format(model=model)}",
              f" * CasADi {ca.__version__}. */",
              "#include <math.h>",
              f'#include "{model}.h"',
              "",
              "/* Explicit double or float math functions (no <tgmath.h>). */",
-             math_block(),
+             math_block("\n".join(functions)),
              "/* casadi_real must agree with SYMKF_FLOAT (define SYMKF_FLOAT, not casadi_real, for float). */",
              "#ifdef SYMKF_FLOAT",
              "typedef char symkf_real_is_float[(sizeof(casadi_real) == sizeof(float)) ? 1 : -1];",
@@ -665,13 +703,7 @@ def api_unit(bundle: Bundle) -> str:
              *prototypes,
              "",
              "/* ---------------- symkf wrappers: the public API ---------------- */",
-             ""]
-    parts.append(FINITE_HELPER)
-    by_name = {k.name: k for k in bundle.kernels}
-    for kernel in bundle.kernels:
-        parts.append(_wrapper(model, kernel, by_name))
-        if kernel.runnable:
-            parts.append(_run_loop(model, kernel))
+             "", *functions]
     return ascii_text("\n".join(parts))
 
 
