@@ -31,13 +31,10 @@ its worst call path across the units).
 """
 from __future__ import annotations
 
-import ast
 import hashlib
 import re
 from collections import Counter
-import tokenize
 import unicodedata
-from pathlib import Path
 
 import casadi as ca
 
@@ -946,57 +943,20 @@ def _scaling_lines(M: str, desc: dict) -> list[str]:
             f"#define {M}_SCALED_STATE {int(bool(used))}"]
 
 
-def model_constants(model: str) -> list[tuple[str, str, str]]:
-    """The model file's paper constants: (NAME, C value or initializer, source comment) for every
-    module-level UPPER_CASE number or flat sequence of numbers assigned in ``models/<model>.py``."""
-    import importlib
-    try:        # the paper models (a user's model file has no constants section yet)
-        module = importlib.import_module(f"symkf.models.{model}")
-        path = Path(module.__file__)
-        tree = ast.parse(path.read_text())
-    except Exception:
-        return []
-    comments = _line_comments(path)
-    found = []
-    for node in tree.body:
-        if not (isinstance(node, ast.Assign) and len(node.targets) == 1 and isinstance(node.targets[0], ast.Name)):
-            continue
-        name = node.targets[0].id
-        if not re.fullmatch(r"[A-Z][A-Z0-9_]*", name):
-            continue
-        literal = _c_literal(getattr(module, name, None))
-        if literal is not None:
-            found.append((name, literal, comments.get(node.lineno, "")))
-    return found
-
-
-def _c_literal(value) -> str | None:
-    try:
-        import numpy as np
-        array = np.asarray(value)
-    except Exception:
-        return None
-    if array.dtype.kind not in "iuf" or array.ndim > 1 or array.size > 64 or isinstance(value, bool):
-        return None
-    if array.ndim == 0:
-        return _number(array)
-    return "{" + ", ".join(_number(v) for v in array) + "}"
-
-
-def _line_comments(path: Path) -> dict[int, str]:
-    with open(path, "rb") as handle:
-        return {tok.start[0]: tok.string.lstrip("# ").replace("*/", "* /")
-                for tok in tokenize.tokenize(handle.readline) if tok.type == tokenize.COMMENT}
-
-
-def _constant_lines(model: str) -> list[str]:
-    constants = model_constants(model)
+def _constant_lines(model: str, desc: dict, taken: set[str]) -> list[str]:
+    """The model file's named constants (models.get_model records them from the file as executed
+    for this build, so they are part of the content hash); a name that would shadow a generated
+    macro is left out."""
+    constants = [c for c in desc.get("constants", []) if f"{_macro(model)}_{c['name']}" not in taken]
     if not constants:
         return []
-    lines = [f"/* ---- Paper constants of models/{model}.py (as the model uses them; sequences are",
-             " * initializers) ---- */"]
-    for name, literal, comment in constants:
-        lines.append(f"#define {_macro(model)}_{name} {literal}" + (f" /* {comment} */" if comment else ""))
+    lines = ["/* ---- Constants of the model file (module-level UPPER_CASE numbers as the model uses them;",
+             " * sequences are initializers) ---- */"]
+    for constant in constants:
+        value = constant["value"]
+        literal = "{" + ", ".join(_number(v) for v in value) + "}" if isinstance(value, list) else _number(value)
+        comment = ascii_text(constant["comment"]).replace("*/", "* /")
+        lines.append(f"#define {_macro(model)}_{constant['name']} {literal}" + (f" /* {comment} */" if comment else ""))
     return lines + [""]
 
 
@@ -1047,7 +1007,9 @@ def header(bundle: Bundle, content_hash: str, compiler: str = "cc", flags: str =
              "/* ---- Return codes ---- */"]
     for code, (name, meaning) in STATUS_CODES.items():
         lines.append(f"#ifndef {name}\n#define {name} {code} /* {meaning} */\n#endif")
-    lines += [""] + _dimension_lines(model, desc) + _constant_lines(model)
+    dimensions = _dimension_lines(model, desc)
+    taken = {word for line in dimensions for word in re.findall(r"#define (\w+)", line)}
+    lines += [""] + dimensions + _constant_lines(model, desc, taken)
     lines += ["#ifdef __cplusplus", 'extern "C" {', "#endif", "",
               "/** The content hash this library was generated with (checked by the Python loader). */",
               f"#define {_macro(model)}_CONTENT_HASH_STACK_BYTES {STACK_PLACEHOLDER.format(model + '_content_hash')}",

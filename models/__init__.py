@@ -12,11 +12,16 @@ equations on the next build or load.
 """
 from __future__ import annotations
 
+import ast
 import importlib
 import importlib.util
+import io
 import itertools
+import math
 import os
+import re
 import sys
+import tokenize
 import types
 from pathlib import Path
 
@@ -94,10 +99,10 @@ def _from_file(path: Path, package: str | None, display: str | None = None) -> M
         sys.modules.pop(unique, None)
         if added and folder in sys.path:
             sys.path.remove(folder)
-    return _call_build(module, display)
+    return _call_build(module, display, source)
 
 
-def _call_build(module: types.ModuleType, display: str) -> Model:
+def _call_build(module: types.ModuleType, display: str, source: bytes | None = None) -> Model:
     build = getattr(module, "build", None)
     if not callable(build):
         raise ModelError(f"{display} defines no build() returning a Model")
@@ -106,4 +111,38 @@ def _call_build(module: types.ModuleType, display: str) -> Model:
         raise ModelError(f"{display}: build() returned None; end it with `return model`")
     if not isinstance(model, Model):
         raise ModelError(f"{display}: build() returned a {type(model).__name__}, expected a symkf Model")
+    if source is not None and not model.constants:
+        model.constants = module_constants(module, source)
     return model.validate()
+
+
+def module_constants(module: types.ModuleType, source: bytes) -> list[tuple[str, float | list[float], str]]:
+    """Every module-level ``UPPER_CASE = number`` (or flat sequence of at most 64 finite numbers)
+    of the executed ``source``, with its value as the build sees it and its line comment."""
+    try:
+        tree = ast.parse(source)
+        comments = {tok.start[0]: tok.string.lstrip("# ") for tok in tokenize.tokenize(io.BytesIO(source).readline)
+                    if tok.type == tokenize.COMMENT}
+    except (SyntaxError, tokenize.TokenError):
+        return []
+    found = []
+    for node in tree.body:
+        if isinstance(node, ast.Assign) and len(node.targets) == 1 and isinstance(node.targets[0], ast.Name) \
+                and re.fullmatch(r"[A-Z][A-Z0-9_]*", node.targets[0].id):
+            value = _plain_number(getattr(module, node.targets[0].id, None))
+            if value is not None:
+                found.append((node.targets[0].id, value, comments.get(node.lineno, "")))
+    return found
+
+
+def _plain_number(value) -> float | list[float] | None:
+    """A finite real number, or a flat list/tuple/1-D array of at most 64 of them; else None."""
+    try:
+        import numpy as np
+        array = np.asarray(value)
+    except Exception:
+        return None
+    if isinstance(value, bool) or array.dtype.kind not in "iuf" or array.ndim > 1 or array.size > 64 \
+            or not all(math.isfinite(v) for v in array.ravel().tolist()):
+        return None
+    return float(array) if array.ndim == 0 else [float(v) for v in array]

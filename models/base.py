@@ -138,6 +138,9 @@ class Model:
     scaled_state: bool = False
     #: The exact discrete step, if the model has one (:meth:`set_discrete_step`): (dt, x_{k+1}).
     discrete_step: tuple | None = None
+    #: The model file's module-level UPPER_CASE numbers, as executed for this build: [(name, value,
+    #: source comment)] (filled by :func:`symkf.models.get_model`; the header's named constants).
+    constants: list[tuple[str, float | list[float], str]] = field(default_factory=list)
     _symbols: dict[str, list[ca.SX]] = field(default_factory=lambda: {k: [] for k in "xupw"})
     _pending_q: tuple | None = None
     _pending_v: tuple | None = None
@@ -403,6 +406,8 @@ class Model:
                if self.quaternions else {}),
             **({"state_scaling": {"scale": list(self.state_scale), "offset": list(self.state_offset),
                                   "kernels_use_scaled_state": self.scaled_state}} if self.has_scaling else {}),
+            **({"constants": [{"name": n, "value": v, "comment": c} for n, v, c in self.constants]}
+               if self.constants else {}),
         }
 
     @property

@@ -331,3 +331,16 @@ def test_damaged_cached_object_is_recompiled_never_linked(tmp_path, write_model,
     assert len(rebuilt.compiled) == len(json.loads(rebuilt.manifest.read_text())["sources"])
     np.testing.assert_array_equal(_filter_numbers(load(str(path))), expected)
     assert build_model(str(path), force=True).compiled == ()             # the cache was repaired
+
+
+def test_header_constants_come_from_the_file_built_not_the_package(tmp_path, write_model, private_build):
+    """A user's file named like a paper model gets its own constants in the header, and an edited
+    constant reaches the header (constants are part of what is hashed)."""
+    path = write_model(tmp_path / "launcher.py", drag=0.1, name="launcher")
+    first = build_model(str(path))
+    header = (first.directory / "launcher.h").read_text()
+    assert "#define LAUNCHER_DRAG 0.1" in header and "LAUNCHER_MU_EARTH" not in header
+    write_model(path, drag=0.25, name="launcher")
+    second = build_model(str(path))
+    assert second.content_hash != first.content_hash
+    assert "#define LAUNCHER_DRAG 0.25" in (second.directory / "launcher.h").read_text()
