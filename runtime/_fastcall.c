@@ -97,6 +97,7 @@ typedef struct {
   Py_ssize_t stride;
   int held;
   Py_buffer view;
+  double items[MAX_SIZE];   /* a list or tuple's numbers, converted as numpy.asarray(o, float) does */
 } Input;
 
 static double entry(const Input *in, Py_ssize_t i) {
@@ -114,8 +115,28 @@ static int values_ok(const Input *in, Py_ssize_t n, int check) {
   return 1;
 }
 
+/* 1: `o` is a list or tuple of `size` Python floats or ints (not bools), read into in->items.
+   A float converts exactly; an int as PyLong_AsDouble (correctly rounded, as numpy converts it). */
+static int sequence_ok(const Slot *slot, PyObject *o, Input *in) {
+  Py_ssize_t i, n = PySequence_Fast_GET_SIZE(o);
+  PyObject **items = PySequence_Fast_ITEMS(o);
+  if (n != slot->size || n > MAX_SIZE) return 0;
+  for (i = 0; i < n; ++i) {
+    PyObject *item = items[i];
+    if (PyFloat_Check(item)) in->items[i] = PyFloat_AS_DOUBLE(item);
+    else if (PyLong_CheckExact(item)) {
+      in->items[i] = PyLong_AsDouble(item);
+      if (in->items[i] == -1.0 && PyErr_Occurred()) { PyErr_Clear(); return 0; }
+    } else return 0;
+  }
+  in->buf = (const char *) in->items;
+  in->stride = (Py_ssize_t) sizeof(double);
+  return 1;
+}
+
 /* 1: `o` is a native float64 1-D array of `size` entries (in->buf, in->stride set); 0: it is not. */
 static int shape_ok(const Slot *slot, PyObject *o, Input *in) {
+  if (PyList_CheckExact(o) || PyTuple_CheckExact(o)) return sequence_ok(slot, o, in);
 #ifdef SYMKF_NUMPY
   if (PyArray_CheckExact(o)) {
     PyArrayObject *a = (PyArrayObject *) o;

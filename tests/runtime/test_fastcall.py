@@ -104,7 +104,14 @@ DECLINED = {
     "dt negative": (0.0, -0.05, _radar(1), STATION, None, None),
     "dt inf": (0.0, np.inf, _radar(1), STATION, None, None),
     "dt bool": (0.0, True, _radar(1), STATION, None, None),
-    "z list": (0.0, 0.05, [1000.0, 0.3, 0.2], STATION, None, None),
+    "z list short": (0.0, 0.05, [1000.0, 0.3], STATION, None, None),
+    "z list with a bool": (0.0, 0.05, [1000.0, True, 0.2], STATION, None, None),
+    "z list with a string": (0.0, 0.05, [1000.0, "0.3", 0.2], STATION, None, None),
+    "z list with float32": (0.0, 0.05, [1000.0, np.float32(0.3), 0.2], STATION, None, None),
+    "z list nested": (0.0, 0.05, [[1000.0, 0.3, 0.2]], STATION, None, None),
+    "z list NaN": (0.0, 0.05, [1000.0, float("nan"), 0.2], STATION, None, None),
+    "z list huge int": (0.0, 0.05, [10 ** 400, 0.3, 0.2], STATION, None, None),
+    "mask list half": (0.0, 0.05, _radar(1), STATION, [1, 0.5, 1], None),
     "z short": (0.0, 0.05, _radar(1)[:2], STATION, None, None),
     "z column": (0.0, 0.05, _radar(1).reshape(3, 1), STATION, None, None),
     "z float32": (0.0, 0.05, _radar(1).astype(np.float32), STATION, None, None),
@@ -150,10 +157,24 @@ def test_what_the_python_path_accepts_the_fast_path_takes_alike(launcher_compile
     assert np.array_equal(fast.kernel_buffer("z", "radar"), z, equal_nan=True)
 
 
+def test_lists_and_tuples_of_numbers_take_the_fast_path_alike(launcher_compiled):
+    """Plain Python sequences (floats, ints; a mask of ints) are read in C exactly as the Python
+    path converts them: the same state, bit for bit."""
+    fast, slow = launcher_compiled.ekf(X0, P0, Q), _python_path(launcher_compiled.ekf(X0, P0, Q))
+    for f in (fast, slow):
+        for k in range(1, 4):
+            z = [float(v) for v in Z[k]]
+            z[0] = int(z[0])                                           # an int among floats
+            assert f.step(TIMES[k - 1], 0.05, z, q=tuple(STATIONS[k]), mask=[1, 1, 1]) == 0
+    assert fast.fast_calls == 3 and slow.fast_calls == 0
+    for a, b in zip(_state(fast), _state(slow)):
+        assert np.array_equal(a, b)
+
+
 def test_the_fast_path_counts_only_the_calls_it_took(launcher_compiled):
     f = launcher_compiled.ekf(X0, P0, Q)
     f.step(TIMES[0], 0.05, Z[1], q=STATION)
-    f.step(TIMES[1], 0.05, list(Z[2]), q=STATIONS[2])        # a list: the Python path
+    f.step(TIMES[1], 0.05, Z[2].astype(">f8"), q=STATIONS[2])        # big-endian: the Python path
     with pytest.raises(ValueError):
         f.step(TIMES[2], 0.05, Z[3], q=STATIONS[3], mask=np.array([1.0, 0.5, 1.0]))
     assert f.fast_calls == 1
