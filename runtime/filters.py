@@ -475,7 +475,8 @@ class Filter:
     def _write_time(self, t: float, dt: float | None, u) -> None:
         """Time (and input) of a call: checked for the buffers' type before anything is written;
         the measurement's values are written after this (they are already checked)."""
-        self._fits("t", t), self._fits("dt", dt if dt is not None else 0.0)
+        self._fits("t", t)
+        self._fits("dt", dt if dt is not None else 0.0)
         if "t" in self._buffers:
             self._buffers["t"][0] = t
         if dt is not None:

@@ -139,8 +139,7 @@ def time_mekf(compiled, recording, args) -> dict:
     python = ekf.make_filter(compiled, recording)
     python.fast_path = False
 
-    time, dt, gyro = recording.time, recording.dt, recording.gyro   # (recording.dt is np.diff of the
-                                                                   # whole record: never in the loop)
+    time, dt, gyro = recording.time, recording.dt, recording.gyro
 
     def api_steps(f=filt):
         for k in range(1, n_step):

@@ -10,6 +10,7 @@ Quaternions are scalar-last ``[x, y, z, w]`` everywhere in the project; BROAD's 
 from __future__ import annotations
 
 import csv
+import functools
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -49,8 +50,9 @@ class Recording:
     movement: np.ndarray | None = None
     source: str = ""
 
-    @property
+    @functools.cached_property
     def dt(self) -> np.ndarray:
+        """Sample intervals, computed once (read per sample by the benches' loops)."""
         return np.diff(self.time, prepend=self.time[:1])
 
     def __len__(self) -> int:
