@@ -5,7 +5,7 @@ naming the argument and what was wrong. Nothing here touches a filter's state.
 
 - real scalars: a number (not a string, bool or array), finite; ``dt`` > 0 (a run's first
   step may be 0); ``t`` any finite time;
-- arrays: numbers of exactly the declared shape;
+- arrays: numbers of exactly the declared shape (a bool inside a list or tuple is refused, not read as 0 or 1);
 - covariances: P and Q symmetric positive semi-definite, R symmetric positive definite, finite;
 - masks: exactly 0 or 1 everywhere;
 - run times: 1-D, finite, strictly increasing;
@@ -56,6 +56,8 @@ def as_array(name: str, value, shape: tuple[int, ...], kinds: str = "fiu") -> np
         raw = np.asarray(value)
     except (TypeError, ValueError):
         raw = None
+    if raw is not None and isinstance(value, (list, tuple)) and _holds_bool(value):
+        raise ValueError(f"{name}: expected real numbers of shape {shape}, got a bool inside {type(value).__name__}")
     if raw is None or raw.dtype.kind not in kinds:
         kind = type(value).__name__ if raw is None or raw.dtype.kind == "O" else f"{type(value).__name__} of {raw.dtype}"
         raise ValueError(f"{name}: expected real numbers of shape {shape}, got {kind}")
@@ -63,6 +65,12 @@ def as_array(name: str, value, shape: tuple[int, ...], kinds: str = "fiu") -> np
     if array.shape != shape:
         raise ValueError(f"{name}: expected shape {shape}, got {array.shape}")
     return array
+
+
+def _holds_bool(value: list | tuple) -> bool:
+    """Whether a (nested) list or tuple holds a bool, which numpy would silently read as 0 or 1."""
+    return any(isinstance(item, (bool, np.bool_)) or (isinstance(item, (list, tuple)) and _holds_bool(item))
+               for item in value)
 
 
 def exact_array(name: str, value, shape: tuple[int, ...]) -> np.ndarray:

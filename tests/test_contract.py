@@ -367,7 +367,7 @@ def _bad_step_inputs(case: Case) -> dict[str, dict]:
            "dt Inf": {"dt": np.inf}, "dt string": {"dt": "0.05"}, "dt array": {"dt": np.array([0.05, 0.05])},
            "z NaN": {"z": np.where(np.arange(z.size) == 0, np.nan, z)}, "z Inf": {"z": np.where(np.arange(z.size) == 0, np.inf, z)},
            "z short": {"z": z[:-1]}, "z column": {"z": z[:, None]}, "z string": {"z": "abc"},
-           "z strings": {"z": [str(v) for v in z]}, "z complex": {"z": z + 1j}, "z None": {"z": None},
+           "z strings": {"z": [str(v) for v in z]}, "z with a bool": {"z": [True] + [float(v) for v in z[1:]]}, "z complex": {"z": z + 1j}, "z None": {"z": None},
            "u NaN": {"u": np.full(3 if case.marg or case.model == "attitude" else 4, np.nan)} if a["u"] is not None else None,
            "u shape": {"u": np.zeros(7)}, "nan policy": {"nan": "ignore"}}
     if not case.marg:
@@ -633,3 +633,12 @@ def test_property_marg_step_errs_cleanly_or_stays_unit(compiled, form, dt, gyro,
         assert_unchanged(f, before)
         return
     assert np.isfinite(f.q).all() and abs(np.linalg.norm(f.q) - 1) < 1e-12
+
+
+@pytest.mark.parametrize("value", [[1000.0, True, 0.2], (1000.0, 0.3, np.bool_(False)), [[1000.0], [False], [0.2]]])
+def test_a_bool_inside_a_list_is_refused_not_read_as_one(value):
+    """numpy reads [1000.0, True] as [1000.0, 1.0]; the contract refuses it, as it refuses a bool scalar."""
+    from symkf.runtime.contract import as_array
+    with pytest.raises(ValueError, match="bool"):
+        as_array("z", value, (3,) if np.ndim(value) == 1 else (3, 1))
+    assert np.array_equal(as_array("z", [1000.0, 1, 0.2], (3,)), [1000.0, 1.0, 0.2])
