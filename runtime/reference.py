@@ -247,18 +247,24 @@ class ManifoldReference:
     written out by hand here (chain rule through the model's CasADi f_d, ∂f_d/∂x, h, ∂h/∂x), the
     quaternion mean by ``numpy.linalg.eigh``. Compiled and reference must agree to round-off.
     ``side="left"``: the reference-frame error of ``manifold_side="left"``, Exp(δθ) ⊗ q and
-    Log(q ⊗ q_ref⁻¹)."""
+    Log(q ⊗ q_ref⁻¹). ``transition``: the MEKF's F, "step" (through f_d) or "series"
+    (I + A dt + (A dt)²/2 of the error dynamics, :meth:`error_rate_matrix`); default the model's
+    ``manifold_transition`` (``Model.codegen_defaults``), as the compiled filter."""
 
     def __init__(self, model, family: str, x0, P0, Q, R: dict | None = None, p=None, kappa: float = 0.0,
-                 side: str = "right"):
+                 side: str = "right", transition: str | None = None):
         if family not in ("mekf", "mukf"):
             raise ValueError("family: expected 'mekf' or 'mukf'")
         if side not in ("right", "left"):
             raise ValueError("side: expected 'right' or 'left'")
-        self.side = side
         from symkf.models import get_model
         model = get_model(model)
+        transition = model.codegen_defaults.get("manifold_transition", "step") if transition is None else transition
+        if transition not in ("step", "series"):
+            raise ValueError("transition: expected 'step' or 'series'")
+        self.side, self.transition = side, transition
         self.functions = ModelFunctions(model, make_config(model))
+        self._f, self._jac_f = manifold_family.continuous_functions(model)
         self.family, self.kappa = family, float(kappa)
         self.quaternions = [(qs.index, qs.error_index) for qs in model.quaternions]
         inside = {i + k for i, _ in self.quaternions for k in range(4)}
@@ -338,6 +344,19 @@ class ManifoldReference:
         G = self.local_jacobian(self.x) @ np.array(self.functions.noise_gain(t, self.x, self.u, self.p))
         return G @ self.Q @ G.T * dt
 
+    def error_rate_matrix(self, t: float) -> np.ndarray:
+        """A = ∂δ̇/∂δ at x̂ by the chain rule: ∂(x ⊟ x̂)/∂x · ∂f/∂x · ∂(x̂ ⊞ δ)/∂δ, plus per quaternion
+        the motion of the reference point, δ = 2 vec(q̂⁻¹ ⊗ q) moving with q̂: L(q̂̇* ⊗ q̂) (right;
+        R(q̂ ⊗ q̂̇*) left), upper-left 3 x 3."""
+        x = self.x
+        A = self.local_jacobian(x) @ np.array(self._jac_f(t, x, self.u, self.p)) @ self.retract_jacobian(x)
+        rate = np.array(self._f(t, x, self.u, self.p)).ravel()
+        for i, e in self.quaternions:
+            q, q_dot = x[i:i + 4], conjugate(rate[i:i + 4])
+            moving = left_matrix(hamilton(q_dot, q)) if self.side == "right" else right_matrix(hamilton(q, q_dot))
+            A[e:e + 3, e:e + 3] += moving[:3, :3]
+        return A
+
     # ---------------------------------------------------------------- steps
     def predict(self, t: float, dt: float, u=None) -> None:
         if u is not None:
@@ -346,8 +365,12 @@ class ManifoldReference:
         if self.family == "mekf":
             x_f = self._fd(t, dt, self.x)
             x_next = self.project(x_f)
-            F_state = np.array(self.functions.jac_fd(t, dt, self.x, self.u, self.p))
-            F = self.local_jacobian(x_next, x_f) @ F_state @ self.retract_jacobian(self.x)
+            if self.transition == "series":
+                Adt = self.error_rate_matrix(t) * dt
+                F = np.eye(self.ne) + Adt + 0.5 * Adt @ Adt
+            else:
+                F_state = np.array(self.functions.jac_fd(t, dt, self.x, self.u, self.p))
+                F = self.local_jacobian(x_next, x_f) @ F_state @ self.retract_jacobian(self.x)
             self.x, self.P = x_next, _sym(F @ self.P @ F.T + noise)
             return
         offsets, weights = self._sigma_offsets()

@@ -95,6 +95,68 @@ def test_sequential_update_equals_the_batch_reference():
     np.testing.assert_array_equal(compiled.P, P)
 
 
+@pytest.mark.parametrize("side", ["right", "left"])
+def test_series_transition_equals_numpy_reference_and_is_close_to_the_step_one(side):
+    """manifold_transition="series" (F = I + A dt + (A dt)²/2, A derived by CasADi through the chart):
+    compiled == the NumPy reference's chain-rule A to round-off (on the right side the attitude
+    drops out of A and is replaced by the identity; on the left it stays: both checked), and the
+    covariance differs from F through the RK4 step only by the series' truncation."""
+    series = load(SPINNER, backend="compiled", manifold_transition="series", manifold_side=side)
+    step = load(SPINNER, backend="compiled", manifold_side=side)
+    compiled, through_step = series.filter("mekf", X0, P0, QPSD), step.filter("mekf", X0, P0, QPSD)
+    ref = ManifoldReference(SPINNER, "mekf", X0, P0, QPSD, side=side, transition="series")
+    z = _vectors(hamilton(Q0, exp_rotvec(np.array([0.05, -0.08, 0.1]))))
+    for k in range(3):
+        for f in (compiled, through_step):
+            f.step(0.02 * k, 0.02, z, "vectors", u=U)
+        ref.step(0.02 * k, 0.02, z, "vectors", u=U)
+        _assert_close(compiled.x, ref.x, what="series x")
+        _assert_close(compiled.P, ref.P, what="series P")
+    gap = np.max(np.abs(compiled.P - through_step.P)) / np.max(np.abs(through_step.P))
+    assert 1e-12 < gap < 1e-4, gap                 # |A dt| ~ 0.01 here: a truncation of ~|A dt|³
+
+
+def test_series_transition_needs_the_rk4_step():
+    from symkf.codegen.spec import ConfigError
+    with pytest.raises(ConfigError, match="manifold_transition 'series' needs manifold_step 'rk4'"):
+        load("attitude", backend="compiled", manifold_transition="series")
+
+
+def test_marg_mekf_numpy_reference_step_and_run_agree():
+    """models/marg_ekf.py (series transition, sequential update) on a synthetic recording as
+    scenarios/marg/ekf.py feeds it: NumPy reference (batch update, chain-rule A) == compiled step
+    == compiled run, heading masked and gyro-at-rest used in parts."""
+    from symkf.scenarios.marg import ekf
+    from symkf.scenarios.marg.data import Recording
+    rng = np.random.default_rng(11)
+    n = 800                                           # 1.6 s at rest (the rest rule needs 1.5 s), then turning
+    time = np.arange(n) / 285.714
+    gyro = rng.normal(0.0, 2e-3, (n, 3)) + np.where(time[:, None] > 1.6, [0.3, -0.2, 0.8], 0.0)
+    acc = rng.normal([0.0, 0.0, 9.81], 0.05, (n, 3))
+    mag = rng.normal([0.0, 25.0, -43.0], 0.3, (n, 3))
+    mag[600:650] *= 1.2                               # a disturbance: the heading is masked there
+    recording = Recording("synthetic", time, gyro, acc, mag)
+    z, mask = ekf.measurements(recording), ekf.masks(recording)
+    assert 0 < mask[:, 3].sum() < n and 0 < mask[:, 4].sum() < n
+    compiled = load("marg_ekf", backend="compiled")
+    run = ekf.run_recording(compiled, recording)
+    stepped = ekf.make_filter(compiled, recording)
+    ref = ManifoldReference("marg_ekf", "mekf", stepped.x, stepped.P, stepped.Q)
+    assert ref.transition == "series"
+    stepped.update(z[0], "marg", q=mag[0], mask=mask[0], u=gyro[0])
+    ref.u = gyro[0]
+    ref.update(z[0], "marg", 0.0, q=mag[0], mask=mask[0])
+    for k in range(1, n):
+        dt = time[k] - time[k - 1]
+        stepped.step(time[k - 1], dt, z[k], "marg", q=mag[k], mask=mask[k], u=gyro[k])
+        ref.step(time[k - 1], dt, z[k], "marg", q=mag[k], mask=mask[k], u=gyro[k])
+        np.testing.assert_allclose(run.x[k], stepped.x, rtol=0, atol=1e-14)
+        np.testing.assert_allclose(run.P[k], stepped.P, rtol=0, atol=1e-18)
+    _assert_close(stepped.x, ref.x, rtol=1e-10, what="x after 800 samples")
+    _assert_close(stepped.P, ref.P, rtol=1e-9, what="P after 800 samples")
+    assert np.max(np.abs(stepped.x[4:])) > 1e-4                # the bias moved: not a vacuous run
+
+
 def test_left_and_right_charts_differ_and_the_reference_tells_them_apart(spinner, spinner_left):
     """The two sides give different covariances (a body-frame vs a reference-frame error), and the
     reference of the other side does not match: the left-chart test above checks the left chart."""
