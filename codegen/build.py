@@ -56,7 +56,7 @@ import casadi as ca
 from symkf.models import Model, get_model
 from . import c_writer, families  # noqa: F401  (families register themselves on import)
 from .discretize import continuous_dynamics, measurement_function
-from .kernels import FAMILIES, ModelFunctions, Symbols, model_kernels
+from .kernels import FAMILIES, LONG_COMPILE, ModelFunctions, Symbols, model_kernels
 from .scaling import model_for
 from .spec import Bundle, CodegenConfig, ConfigError, register_options
 
@@ -89,9 +89,9 @@ class BuildResult:
     content_hash: str
     up_to_date: bool
     seconds: float
-    #: Where the time went (s): "model" (execute build() + hash), "generate" (kernels; the model's
-    #: own functions start compiling meanwhile), "write" (C text, header; the units start
-    #: compiling), "compile" (waiting for the units not in the object cache; link).
+    #: Where the time went (s): "model" (execute build() + hash), "generate" (kernels and their
+    #: C, part by part; each part's units start compiling meanwhile), "write" (API and hash
+    #: units, header, Makefile), "compile" (waiting for the units not in the object cache; link).
     timings: dict = field(default_factory=dict)
     #: The C units compiled by this build (the others came from the object cache).
     compiled: tuple = ()
@@ -239,23 +239,31 @@ def generate(model, config: CodegenConfig | None = None) -> Bundle:
     return _generate(model, config or default_config(model))
 
 
-def _generate(model: Model, config: CodegenConfig, on_kernels=None) -> Bundle:
-    """:func:`generate` of a model already validated (by :func:`build_model`). ``on_kernels``, if
-    given, receives the bundle of the model's own kernels (f, f_d, F, h, H) before the filter
-    families are generated (a build starts compiling them meanwhile)."""
+def _generate(model: Model, config: CodegenConfig, on_part=None) -> Bundle:
+    """:func:`generate` of a model already validated (by :func:`build_model`). The kernels are made
+    in parts: the model's own (f, f_d, F, h, H), then each filter family's, in the model's order.
+    ``on_part(index, part)``, if given, receives each part's bundle as soon as it is made (a build
+    starts compiling its units while the next part is generated); the families with the longest
+    compile (:data:`~symkf.codegen.kernels.LONG_COMPILE`) are made first."""
     model = model_for(model, config)
-    symbols, functions = Symbols(model), ModelFunctions(model, config)
-    kernels, filters = model_kernels(model, symbols, functions), []
-    if on_kernels is not None:
-        on_kernels(Bundle(model.name, list(kernels), config, model.describe()))
     for family in model.filters:
         if family not in FAMILIES:
             raise BuildError(f"model '{model.name}' asks for filter family '{family}'; known: {sorted(FAMILIES)}")
-        generated = FAMILIES[family](model, symbols, functions)
-        kernels += generated.kernels
-        filters += generated.filters
+    symbols, functions = Symbols(model), ModelFunctions(model, config)
+    own = model_kernels(model, symbols, functions)
+    if on_part is not None:
+        on_part(0, Bundle(model.name, list(own), config, model.describe()))
+    made = {}
+    for family in sorted(model.filters, key=lambda name: name not in LONG_COMPILE):    # stable: else the model's order
+        made[family] = FAMILIES[family](model, symbols, functions)
+        if on_part is not None:
+            on_part(1 + model.filters.index(family), Bundle(model.name, list(made[family].kernels), config,
+                                                             model.describe()))
+    kernels = own + [k for family in model.filters for k in made[family].kernels]
+    filters = [f for family in model.filters for f in made[family].filters]
     _check_c_names(model.name, kernels)
-    return Bundle(model.name, kernels, config, model.describe(), filters)
+    parts = (len(own),) + tuple(len(made[family].kernels) for family in model.filters)
+    return Bundle(model.name, kernels, config, model.describe(), filters, parts)
 
 
 def _check_c_names(model: str, kernels) -> None:
@@ -361,10 +369,14 @@ def build_model(model, force: bool = False, **overrides) -> BuildResult:
         staging = Path(tempfile.mkdtemp(prefix=f".{directory.name}.tmp-", dir=root))
         try:
             with UnitCompiler(staging, cc, config, f"{model.name}.h") as units:
-                mark = time.perf_counter()      # the model's own functions compile while the families generate
-                bundle = _generate(model, config, lambda own: units.add(c_writer.function_units(own)))
+                mark, per_part = time.perf_counter(), {}      # each part's units compile while the next part generates
+
+                def on_part(index: int, part: Bundle) -> None:
+                    per_part[index] = c_writer.part_units(part)
+                    units.add(per_part[index])
+                bundle = _generate(model, config, on_part)
                 timings["generate"] = time.perf_counter() - mark
-                write_bundle(bundle, staging, key, generated, cc, units)
+                write_bundle(bundle, staging, key, generated, cc, units, [per_part[i] for i in sorted(per_part)])
                 timings["write"] = time.perf_counter() - mark - timings["generate"]
                 mark = time.perf_counter()
                 compiled = compile_bundle(staging, model.name, cc, config, units)
@@ -385,12 +397,12 @@ def _result(name: str, directory: Path, up_to_date: bool, start: float, timings:
 
 
 def write_bundle(bundle: Bundle, directory: Path, key: str, generated: str, cc: str,
-                 units: UnitCompiler | None = None) -> None:
+                 units: UnitCompiler | None = None, per_part: list[dict[str, str]] | None = None) -> None:
     """Write the translation units (through ``units``, which starts compiling them), the header,
     the Makefile and a provisional manifest.json (no library yet; ``sources`` lists the units,
-    the API unit first)."""
+    the API unit first). ``per_part``: the units of each part of the bundle, if already made."""
     name = bundle.model_name
-    sources = c_writer.units(bundle, key)
+    sources = c_writer.units(bundle, key, per_part)
     if units is not None:
         units.add(sources)
     else:
@@ -530,7 +542,8 @@ class UnitCompiler:
         unit.cached = self.cache / hashlib.sha256((identity + keyed_text).encode()).hexdigest()[:32]
         obj = self.directory / (file[:-2] + ".o")
         if not _reuse(unit.cached, obj, self.suffixes):
-            unit.job = self.pool.submit(self.cc.split() + self.flags(file) + ["-c", "-o", obj.name, file])
+            unit.job = self.pool.submit(self.cc.split() + self.flags(file) + ["-c", "-o", obj.name, file],
+                                        priority=len(unit.text))      # the longest compile first
 
     def finish(self, sources: list[str]) -> tuple[list[Path], list[str]]:
         """Start the units that include the header, wait for every compile and cache the new
@@ -645,6 +658,7 @@ class CompilerPool:
         self.pending: list[tuple[int, list[str]]] = []
         self.running: dict[int, tuple[subprocess.Popen, object]] = {}
         self.results: dict[int, tuple[int, str]] = {}
+        self.priority: dict[int, float] = {}
         self.submitted = 0
 
     def __enter__(self) -> "CompilerPool":
@@ -655,9 +669,12 @@ class CompilerPool:
             for index in list(self.running):
                 self.cancel(index)
 
-    def submit(self, cmd: list[str]) -> int:
-        """Queue a command (started at once if a slot is free); returns its index."""
+    def submit(self, cmd: list[str], priority: float = 0) -> int:
+        """Queue a command (started at once if a slot is free; queued ones start highest
+        ``priority`` first, in order of submission among equals); returns its index."""
         self.pending.append((self.submitted, cmd))
+        self.priority[self.submitted] = priority
+        self.pending.sort(key=lambda item: -self.priority[item[0]])
         self.submitted += 1
         self.poll()
         return self.submitted - 1

@@ -483,12 +483,17 @@ FamilyBuilder = Callable[[Model, Symbols, ModelFunctions], "Family"]
 #: ``codegen/families/<algorithm>.py`` and calls :func:`register_family` when imported;
 #: ``symkf.codegen.families`` imports them all.
 FAMILIES: dict[str, FamilyBuilder] = {}
+#: Families whose kernels call the bundle's longest compile (the UKF: f_d at 2n + 1 sigma points,
+#: one function); a build generates them before the other families, so that unit compiles first.
+LONG_COMPILE: set[str] = set()
 
 
-def register_family(name: str, builder: FamilyBuilder) -> FamilyBuilder:
-    """Make a filter family available to models by name."""
+def register_family(name: str, builder: FamilyBuilder, long_compile: bool = False) -> FamilyBuilder:
+    """Make a filter family available to models by name (``long_compile``: see :data:`LONG_COMPILE`)."""
     if name in FAMILIES and FAMILIES[name] is not builder:
         raise ValueError(f"filter family '{name}' is registered twice")
     FAMILIES[name] = builder
+    if long_compile:
+        LONG_COMPILE.add(name)
     register_options(*(f"{name}_{option}" for option in Discretisation.__dataclass_fields__))
     return builder

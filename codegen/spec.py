@@ -235,6 +235,19 @@ class Bundle:
     config: CodegenConfig
     description: dict = field(default_factory=dict)
     filters: list[FilterSpec] = field(default_factory=list)
+    #: How many kernels each generation step made, in order (the model's own kernels, then each
+    #: filter family's); () = one part. The C of each part is generated on its own (c_writer).
+    parts: tuple[int, ...] = ()
+
+    def part_bundles(self) -> list["Bundle"]:
+        """The bundle of each part's kernels (the whole bundle if it has no parts)."""
+        if not self.parts:
+            return [self]
+        if sum(self.parts) != len(self.kernels):
+            raise ValueError(f"model '{self.model_name}': parts {self.parts} do not add up to {len(self.kernels)} kernels")
+        starts = [sum(self.parts[:i]) for i in range(len(self.parts))]
+        return [Bundle(self.model_name, self.kernels[a:a + n], self.config, self.description)
+                for a, n in zip(starts, self.parts)]
 
     def filter(self, name: str) -> FilterSpec:
         for spec in self.filters:

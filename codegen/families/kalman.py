@@ -256,4 +256,4 @@ def ukf_kernels(model: Model, symbols: Symbols, fns: ModelFunctions) -> Family:
 
 
 register_family("ekf", ekf_kernels)
-register_family("ukf", ukf_kernels)
+register_family("ukf", ukf_kernels, long_compile=True)      # f_d at the sigma points
