@@ -5,10 +5,10 @@ Three verbs, each callable on its own: :func:`generate` (kernels), :func:`build_
 library). A model is anything :func:`symkf.models.get_model` accepts (a paper model's short name,
 a file path, a module name, a module or a Model).
 """
-from .build import (BuildError, BuildResult, CompilerNotFound, build_model, build_root, compiler,
+from .build import (BuildError, BuildResult, CompilerNotFound, build_model, build_root, build_validated, compiler,
                     content_hash, export_bundle, generate, generated_hash, make_config)
 from .spec import STATUS_CODES, Arg, Bundle, CodegenConfig, Family, FilterSpec, Kernel
 
 __all__ = ["Arg", "Bundle", "BuildError", "BuildResult", "CodegenConfig", "CompilerNotFound", "Family", "FilterSpec",
-           "Kernel", "STATUS_CODES", "build_model", "build_root", "compiler", "content_hash", "export_bundle", "generate",
-           "generated_hash", "make_config"]
+           "Kernel", "STATUS_CODES", "build_model", "build_root", "build_validated", "compiler", "content_hash",
+           "export_bundle", "generate", "generated_hash", "make_config"]

@@ -345,7 +345,13 @@ def build_model(model, force: bool = False, **overrides) -> BuildResult:
     library (same generated hash) is still returned; otherwise :class:`CompilerNotFound`.
     """
     start = time.perf_counter()
-    model = get_model(model)
+    return build_validated(get_model(model), force, start, **overrides)
+
+
+def build_validated(model: Model, force: bool = False, start: float | None = None, **overrides) -> BuildResult:
+    """:func:`build_model` of a Model :func:`~symkf.models.get_model` returned (validated: a
+    loader that has it does not validate it twice). ``start``: when the caller's timing began."""
+    start = time.perf_counter() if start is None else start
     config = CodegenConfig().with_overrides(**{**model.codegen_defaults, **overrides})
     unit_optimization(config)                                   # a bad per-unit option: refused before any work
     timings = {}

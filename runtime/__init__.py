@@ -13,7 +13,7 @@ Functions in CasADi's virtual machine (``backend.kind == "casadi-vm"``).
 """
 from __future__ import annotations
 
-from symkf.codegen import CompilerNotFound, FilterSpec, build_model, generate, make_config
+from symkf.codegen import CompilerNotFound, FilterSpec, build_validated, generate, make_config
 from symkf.models import get_model
 from .backends import CompiledBackend, StaleLibraryError, SymkfError, VirtualMachineBackend
 from .filters import Filter, KalmanFilter, RunResult
@@ -56,7 +56,7 @@ def load(model, backend: str = "auto", **overrides) -> CompiledModel:
     model = get_model(model)
     if backend != "casadi-vm":
         try:
-            result = build_model(model, **overrides)
+            result = build_validated(model, **overrides)          # get_model validated it
         except CompilerNotFound as exc:
             if backend == "compiled":
                 raise
