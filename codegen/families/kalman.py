@@ -155,13 +155,14 @@ def sigma_points(x: ca.SX, P: ca.SX, kappa: ca.SX):
 
 
 def _weighted_mean(points: list[ca.SX], weights: list, wrap: tuple[bool, ...] | None = None) -> ca.SX:
-    """Weighted mean; wrapped components are averaged as deviations from the first point."""
+    """Weighted mean; wrapped components are averaged as deviations from the first point. Term by
+    term, in order (not grouped by equal weights as the covariances are: the 12 equal-weight points'
+    sum of coordinates such as r ~ 6.4e6 m rounds differently, a change of the mean that the filter
+    carries to 1e-5 sigma over a flight; the covariances' grouping leaves x bit-identical)."""
     if not wrap or not any(wrap):
-        return sum((w * pt for w, pt in zip(weights, points)), ca.SX.zeros(points[0].shape))
+        return linalg.weighted_sum(weights, points, group=False)
     ref = points[0]
-    deviation = sum((w * _angle_difference(pt, ref, wrap) for w, pt in zip(weights, points)),
-                    ca.SX.zeros(ref.shape))
-    return ref + deviation
+    return ref + linalg.weighted_sum(weights, (_angle_difference(pt, ref, wrap) for pt in points), group=False)
 
 
 def _angle_difference(a: ca.SX, b: ca.SX, wrap: tuple[bool, ...]) -> ca.SX:
@@ -181,9 +182,15 @@ def ukf_predict_expr(symbols: Symbols, fns: ModelFunctions, x, P, t, dt, Q):
     moved = fd(t, dt, x, ca.tril(L), s["u"], s["p"])
     propagated = [moved[:, i] for i in range(2 * n + 1)]
     x_pred = _weighted_mean(propagated, weights)
-    P_pred = sum((w * (pt - x_pred) @ (pt - x_pred).T for w, pt in zip(weights, propagated)),
-                 ca.SX.zeros(P.shape)) + process_noise(symbols, fns, Q, x, t, dt)
-    return x_pred, linalg.symmetrize(P_pred), ok
+    return x_pred, _sigma_covariance(weights, [pt - x_pred for pt in propagated],
+                                     process_noise(symbols, fns, Q, x, t, dt)), ok
+
+
+def _sigma_covariance(weights: list, deviations: list[ca.SX], Qd: ca.SX) -> ca.SX:
+    """Eq (3): sum_i W_i d_i d_i^T + Q_d, lower triangle computed and mirrored (exactly symmetric;
+    Q_d's symmetric part). The equal weights W_1..W_2n multiply one sum of products, not each term."""
+    spread = linalg.weighted_outer_sum(weights, deviations)
+    return linalg.symmetric(Qd.shape[0], lambda i, j: spread[i, j] + linalg.symmetric_part(Qd, i, j))
 
 
 def ukf_predict_deviations(symbols: Symbols, fns: ModelFunctions, x, P, t, dt, Q):
@@ -199,9 +206,7 @@ def ukf_predict_deviations(symbols: Symbols, fns: ModelFunctions, x, P, t, dt, Q
     Y = fns.for_filter("ukf").increment_columns(len(offsets))(t, dt, x, D, s["u"], s["p"])  # split only at an event
     moved = [Y[:, i] for i in range(len(offsets))]
     mean = _weighted_mean(moved, weights)
-    P_pred = sum((w * (y - mean) @ (y - mean).T for w, y in zip(weights, moved)),
-                 ca.SX.zeros(P.shape)) + process_noise(symbols, fns, Q, x, t, dt)
-    return x + mean, linalg.symmetrize(P_pred), ok
+    return x + mean, _sigma_covariance(weights, [y - mean for y in moved], process_noise(symbols, fns, Q, x, t, dt)), ok
 
 
 def ukf_update_expr(symbols: Symbols, fns: ModelFunctions, name: str, msym: dict, wrap, x, P, t):
@@ -219,8 +224,8 @@ def ukf_update_expr(symbols: Symbols, fns: ModelFunctions, name: str, msym: dict
     dz = [mask * _angle_difference(zi, z_pred, wrap) for zi in predicted]
     dx = deviations if deviations is not None else [pt - x for pt in points]
     R = masked_noise(msym["R"], mask)
-    S = linalg.symmetrize(sum((w * d @ d.T for w, d in zip(weights, dz)), ca.SX.zeros(R.shape)) + R)
-    Pxz = sum((w * a @ b.T for w, a, b in zip(weights, dx, dz)), ca.SX.zeros(x.shape[0], R.shape[0]))
+    S = _sigma_covariance(weights, dz, R)
+    Pxz = linalg.weighted_outer_sum(weights, dx, dz)
     L, ok_s = linalg.cholesky(S)
     # With U = L^-1 Pxz^T: K y = U^T L^-1 y and K S K^T = U^T U (better conditioned than forming K)
     U = linalg.solve_lower(L, Pxz.T)
