@@ -164,6 +164,20 @@ class BoundCall(functools.partial):
         return self
 
 
+def inputs_finite(info: KernelInfo, values: list[np.ndarray]) -> bool:
+    """The C wrappers' input rule (codegen/c_writer.py), for the VM: every input finite, a
+    measurement z only where its mask is > 0.5 when z and mask have one entry per component
+    (kernels may rely on it: codegen/families/manifold.py tests no input itself)."""
+    named = {name: np.asarray(v).reshape(-1, order="F") for (name, _), v in zip(info.inputs, values)}
+    mask = named.get("mask")
+    for name, value in named.items():
+        if name == "z" and mask is not None and mask.size == value.size and value.size:
+            value = value[mask > 0.5]
+        if not np.isfinite(value).all():
+            return False
+    return True
+
+
 class VirtualMachineBackend:
     """The same kernels evaluated by CasADi's virtual machine (no C compiler needed; slower)."""
 
@@ -187,6 +201,8 @@ class VirtualMachineBackend:
 
         def evaluate() -> int:
             args = [buffers[n].reshape(s, order="F") for n, s in info.inputs]
+            if not inputs_finite(info, args):
+                return STATUS_NONFINITE
             results = function.call(args)
             status = int(results[-1])
             if status:

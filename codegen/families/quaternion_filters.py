@@ -166,7 +166,7 @@ def sukf_predict_kernel(mf, ms) -> Kernel:
     n = len(offsets)
     return predict_kernel("sukf_predict", f"Separated-space UKF propagation in [x, w] ({n} sigma points x (+) d_i "
                           "through f_d with noise samples w_i, eqs (9)-(15), (39)-(45); quaternion mean (38)).",
-                          ms, mf, mean, P_pred, ok, ["t", "dt", "x", "P", "u", "p", "Q", "kappa"], [s["kappa"]],
+                          ms, mf, mean, P_pred, ok, ["t", "dt", "x", "P", "u", "p", "Q", "kappa"],
                           in_domain=positive * _state_offsets_in_domain(mf, offsets))
 
 
@@ -179,7 +179,7 @@ def sukf_update_kernel(mf, ms, name: str) -> Kernel:
     from .kalman import UPDATE_INPUTS
     s, ne = ms.base.sym, mf.model.n_error
     msym, marg = ms.measurement(name)
-    m = measurement_input(mf.model, ms, name, msym, [s["kappa"]])
+    m = measurement_input(mf.model, ms, name, msym)
     offsets, weights, ok, positive = sigma_set([ms.sym["P"], msym["R"]], s["kappa"])
     points = [mf.retract(s["x"], o[:ne]) for o in offsets]
     deviations = [o[:ne] for o in offsets]            # χ_i ⊟ x̂ = δ_i exactly (eqs (41)-(42))
@@ -227,13 +227,13 @@ def aukf_kernels(model: Model, symbols: Symbols, fns: ModelFunctions) -> Family:
     inputs = ["t", "dt", "x", "P", "u", "p", "Q", "R", "kappa"]
     predict = predict_kernel("aukf_predict", f"Augmented UKF propagation in [x, w, v] ({n} sigma points; the v "
                              "columns are carried unused).", ms, mf, x_pred, P_pred, ok, inputs,
-                             [msym["R"], s["kappa"]], {"R": msym["R"]}, {"R": marg["R"]}, in_domain)
-    m = measurement_input(model, ms, name, msym, [s["kappa"]])
+                             {"R": msym["R"]}, {"R": marg["R"]}, in_domain)
+    m = measurement_input(model, ms, name, msym)
     x_new, P_new, y, P_yy, ok_s, nis, correction = sigma_update(
         mf, ms, name, msym, m, x_pred, P_pred, residuals, points, [o[ne + nw:] for o in offsets], weights)
     upd = (x_new, P_new, y, P_yy, ok_s, nis, m.finite, mf.chart.in_domain(correction))
     outputs = update_outputs(mf.chart, upd, x_pred, P_pred, msym, m)
-    pre = predict_status(mf, symbols, ms.sym["P"], ms.sym["Q"], ok, [msym["R"], s["kappa"]], in_domain)
+    pre = predict_status(mf, symbols, ok, in_domain)
     failed_early = pre != 0             # as compose_step: a failed propagation returns the inputs
     outputs = [(k, linalg.select(failed_early, {"x": s["x"], "P": ms.sym["P"], "status": pre}.get(k, v), v))
                for k, v in outputs]
