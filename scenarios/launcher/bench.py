@@ -19,8 +19,10 @@ Paths (rows ``{"filter", "path", "us_per_step", ...}``):
 - ``filterpy`` (when FilterPy is installed, ``pip install -e .[bench]``): FilterPy's EKF and UKF
   on the same model, calling our compiled f_d, F, h, H, with the same kappa.
 Each figure is the median over batches of consecutive steps of a real 20 Hz flight segment.
-``--campaign`` adds ``campaign_wall_s``: the wall time of the default ``compare`` (4 cases x
-100 runs x both filters; ``--scheduler`` runs it on Dask), and its throughput per worker.
+``--campaign`` adds ``campaign_wall_s``: the wall time of the default ``compare`` campaign (4 cases
+x 100 runs x both filters; ``--scheduler`` runs it on Dask; tables and figures not included), its
+throughput per worker, its CPU seconds split into the compiled runs and the rest, and the library
+it ran (content hash, -O flags).
 ``--instructions`` counts, with callgrind, the instructions of one call of each part (predict,
 update, the fused step, a step inside the run loop), printed beside 32a5243's (before the
 branching event split). The table ends with issue 12's measures: the figure in the issue, on
@@ -44,6 +46,7 @@ from symkf.codegen.build import compiler
 from symkf.models import launcher as L
 from symkf.runtime import load
 from symkf.runtime.reference import ReferenceFilter
+from symkf.scenarios.campaign import compiled_model
 from .campaign import TUNING, Campaign, initial_estimate, Case
 from .truth import propagate, radar_track
 
@@ -371,16 +374,31 @@ def measure(steps: int, reference_steps: int, campaign: bool, instructions: bool
 
 
 def time_campaign(scheduler: str | None = None, runs: int = 100) -> dict:
-    """Wall and CPU time of the default campaign (4 cases x ``runs`` x both filters), and its
-    throughput per worker (runs/s of wall time divided by the workers; CPU time is this process's,
-    so it counts the work only for local threads)."""
+    """Wall and CPU time of the default campaign (4 cases x ``runs`` x both filters), its
+    throughput per worker (runs/s of wall time divided by the workers), where the CPU went, and
+    which build it ran. ``campaign_cpu_s`` is this process's CPU (all the work for local threads);
+    the tasks' own CPU (``campaign_task_cpu_s``, measured where they run) splits into the compiled
+    runs of each filter (``campaign_run_cpu_s``) and the rest (the truth, once per process and
+    rate; radar draws, filter set-up, errors, NEES, per-run rows)."""
     start, cpu = time.perf_counter(), time.process_time()
     campaign = Campaign(runs, 2005, scheduler=scheduler)
-    campaign.run()
+    results = campaign.run()
     wall = time.perf_counter() - start
-    return {"campaign_wall_s": wall, "campaign_cpu_s": time.process_time() - cpu,
+    task_cpu = sum(r.task_cpu_s for r in results)
+    run_cpu = {f: sum(r.cpu_s[f] for r in results) for f in FILTERS}
+    return {"campaign_runs": runs, "campaign_wall_s": wall, "campaign_cpu_s": time.process_time() - cpu,
+            "campaign_task_cpu_s": task_cpu, "campaign_run_cpu_s": run_cpu,
+            "campaign_other_task_cpu_s": task_cpu - sum(run_cpu.values()),
+            "campaign_build": campaign_build(campaign),
             "campaign_executor": campaign.stats.executor, "campaign_workers": campaign.stats.workers,
             "campaign_runs_per_s_per_worker": campaign.stats.runs / wall / campaign.stats.workers}
+
+
+def campaign_build(campaign: Campaign) -> dict:
+    """The library a campaign ran: content hash, -O flags (and the units compiled otherwise)."""
+    manifest = getattr(compiled_model(campaign.model_key).backend, "manifest", None) or {}
+    return {"content_hash": campaign.model_key.content_hash[:12], "optimization": manifest.get("optimization"),
+            "unit_optimization": sorted(set((manifest.get("unit_optimization") or {}).values()))}
 
 
 #: Issue 12's figures on main before this work ("today", from the issue text) and its targets;
@@ -421,6 +439,18 @@ def targets(report: dict) -> dict:
     return {name: {"today": today, "main_32a5243": MAIN_32A5243[name], "target": target, "now": now[name],
                    "met": None if now[name] is None else bool(now[name] <= target)}
             for name, (today, target) in ISSUE_12.items()}
+
+
+def campaign_lines(report: dict) -> list[str]:
+    """The campaign's wall and CPU seconds, where the CPU went, and the build it ran."""
+    runs, build = report["campaign_run_cpu_s"], report["campaign_build"]
+    units = f", some units {'/'.join(build['unit_optimization'])}" if build["unit_optimization"] else ""
+    return [f"campaign (4 cases x {report['campaign_runs']} runs x 2 filters): {report['campaign_wall_s']:.1f} s wall, "
+            f"{report['campaign_cpu_s']:.1f} s CPU here, {report['campaign_executor']}, "
+            f"{report['campaign_runs_per_s_per_worker']:.1f} runs/s per worker",
+            f"  CPU in the tasks {report['campaign_task_cpu_s']:.1f} s: compiled runs EKF {runs['ekf']:.1f} s + "
+            f"UKF {runs['ukf']:.1f} s, the rest (truth, draws, metrics) {report['campaign_other_task_cpu_s']:.1f} s; "
+            f"library {build['content_hash']} ({build['optimization']}{units})"]
 
 
 def instruction_parts_table(report: dict) -> list[str]:
@@ -478,9 +508,7 @@ def human_table(report: dict) -> str:
     for family in FILTERS:
         lines.append(f"{family}: " + ", ".join(f"{k} = {v:.1f}" for k, v in report["ratios"][family].items()))
     if "campaign_wall_s" in report:
-        lines.append(f"campaign (4 cases x 100 runs x 2 filters): {report['campaign_wall_s']:.1f} s wall, "
-                     f"{report['campaign_cpu_s']:.1f} s CPU here, {report['campaign_executor']}, "
-                     f"{report['campaign_runs_per_s_per_worker']:.1f} runs/s per worker")
+        lines += campaign_lines(report)
     def figure(value) -> str:
         return "-" if value is None else (f"{value:,.0f}" if value >= 1000 else f"{value:.3g}")
     lines += instruction_parts_table(report)

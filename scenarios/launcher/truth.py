@@ -92,7 +92,9 @@ def station_params(stations, measurement: str = "radar") -> np.ndarray:
     if measurement not in L.RADAR_MEASUREMENTS.values():
         raise ValueError(f"measurement: expected one of {sorted(L.RADAR_MEASUREMENTS.values())}, got '{measurement}'")
     params = L.station_params if measurement == "radar" else L.station_params_wgs84
-    return np.array([params(s) for s in stations]).reshape(len(stations), -1)
+    used, index = np.unique(np.asarray(stations, dtype=int), return_inverse=True)
+    rows = np.array([params(s) for s in used]).reshape(len(used), -1)    # one row per station,
+    return rows[index.reshape(-1)]                                       # copied to every step
 
 
 def radar_track(times: np.ndarray, states: np.ndarray, measurement: str = "radar") -> RadarTrack:

@@ -172,3 +172,37 @@ def test_a_worker_killed_mid_campaign_loses_no_run_and_counts_none_twice(cluster
             np.testing.assert_array_equal(table[:, 0], np.arange(RUNS))      # every run once, in order
             np.testing.assert_array_equal(table, threads[(case.label, f)])
             assert result.errors[f].runs == RUNS
+
+
+# ---------------------------------------------------------------------- the launcher's tasks
+def test_a_task_reuses_its_filters_and_each_run_is_the_run_computed_alone(launcher_compiled):
+    """run_chunk builds each filter once and resets x, P per run: the rows (and sums) of runs
+    0-2 in one task equal those of the three runs as one-run tasks, bit for bit."""
+    campaign = C.Campaign(3, SEED, rates=(20,), duration=30.0)
+    args = (campaign.model_key, C.Case(20, "large"), SEED)
+    together = C.run_chunk(*args, (0, 3), 30.0, campaign.tuning)
+    alone = [C.run_chunk(*args, (run, run + 1), 30.0, campaign.tuning) for run in range(3)]
+    for f in C.FILTERS:
+        np.testing.assert_array_equal(together.per_run[f], np.vstack([a.per_run[f] for a in alone]))
+        assert together.per_run[f][:, 4].std() > 0                   # the runs differ (mean NEES)
+        np.testing.assert_array_equal(together.errors[f].nees, sum(a.errors[f].nees for a in alone))
+        assert 0 < together.cpu_s[f] <= together.task_cpu_s
+
+
+def test_tasks_put_the_longest_cases_first_and_results_keep_the_asked_order(launcher_compiled):
+    campaign = C.Campaign(4, SEED, rates=(10, 20), duration=5.0, chunk_runs=2)
+    assert [t.args[1].rate_hz for t in campaign.tasks()] == [20] * 4 + [10] * 4
+    assert [t.args[3] for t in campaign.tasks()][:2] == [(0, 2), (2, 4)]
+    results = campaign.run()
+    assert [r.case.label for r in results] == ["10Hz small", "10Hz large", "20Hz small", "20Hz large"]
+    assert all(r.per_run(f)[:, 0].tolist() == [0, 1, 2, 3] for r in results for f in C.FILTERS)
+
+
+def test_station_parameters_per_step_are_the_model_s_rows():
+    from symkf.models import launcher as L
+    from symkf.scenarios.launcher.truth import station_params
+    stations = [1, 1, 2, 3, 3, 2, 1]
+    for measurement, row in (("radar", L.station_params), ("radar_wgs84", L.station_params_wgs84)):
+        np.testing.assert_array_equal(station_params(stations, measurement), np.array([row(s) for s in stations]))
+    with pytest.raises(ValueError, match="measurement"):
+        station_params(stations, "lidar")
