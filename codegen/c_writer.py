@@ -197,11 +197,10 @@ def _drop_directive_block(source: str, opening: str) -> str:
 
 
 #: A numbered symbol of CasADi's code: a function (casadi_f3), a sparsity table (casadi_s2), ...
-_NUMBERED = re.compile(r"\bcasadi_[a-z]+\d+\b")
+_NUMBERED = re.compile(r"casadi_[a-z]+\d+\b")         # (whole words: see _words)
 _PREFIX_DEFINE = re.compile(r"^#define (casadi_\w+) CASADI_PREFIX\(\w+\)$")
 #: Macros of CasADi's preamble a unit carries only if its code uses them.
 _OPTIONAL_MACROS = ("casadi_to_int", "casadi_inf", "CASADI_CAST", "CASADI_SYMBOL_EXPORT")
-_OPTIONAL_USE = re.compile(r"\b(" + "|".join(_OPTIONAL_MACROS) + r")\b")
 
 
 class CasadiCode:
@@ -235,7 +234,7 @@ class CasadiCode:
             else:
                 self.preamble.append([lines[i]])
                 i += 1
-        self.uses = {name: set(_IDENT.findall(text)) & set(self.blocks) - {name} for name, text in self.blocks.items()}
+        self.uses = {name: set(_words(_IDENT, text)) & set(self.blocks) - {name} for name, text in self.blocks.items()}
         self._hashes: dict[str, str] = {}
         #: the preamble's chunks (blank runs and the comment on dropped exports left out), each with
         #: the optional macros it defines
@@ -271,10 +270,10 @@ class CasadiCode:
         """A hash of a block's code with the blocks it uses replaced by their hashes (equal hashes:
         the same code, whatever CasADi numbered it)."""
         if symbol not in self._hashes:
-            text = re.sub(rf"\b{symbol}\b", "casadi_self", self.blocks[symbol])
-            text = re.sub(r"^/\* \w+:", "/* :", text)
-            text = _IDENT.sub(lambda m: self._canonical(m.group(0)) if m.group(0) in self.uses[symbol] else m.group(0),
-                              text)
+            uses = self.uses[symbol]
+            text = re.sub(r"^/\* \w+:", "/* :", self.blocks[symbol])
+            text = _sub_words(_IDENT, lambda name: "casadi_self" if name == symbol else
+                              self._canonical(name) if name in uses else name, text)
             self._hashes[symbol] = "casadi_h" + hashlib.sha256(text.encode()).hexdigest()[:16]
         return self._hashes[symbol]
 
@@ -294,13 +293,13 @@ class CasadiCode:
         body = "\n\n".join(self.blocks[name] for name in self.blocks if name in defined)
         body = body.replace(f"static int {number}(", f"SYMKF_INTERNAL int {number}(", 1)
         local, counts = {}, Counter()
-        for used in _NUMBERED.findall(body):
+        for used in _words(_NUMBERED, body):
             if used in symbols:
                 local[used] = symbols[used]
             elif used not in local and used in defined:
                 kind = used.rstrip("0123456789")
                 local[used], counts[kind] = f"{kind}{counts[kind]}", counts[kind] + 1
-        body = _NUMBERED.sub(lambda m: local.get(m.group(0), m.group(0)), body)
+        body = _sub_words(_NUMBERED, lambda name: local.get(name, name), body)
         statics = sorted({local.get(name, name) for name in defined if name != number}, key=_natural)
         # its own symbol too: declared before it is defined (MISRA C:2012 rule 8.4)
         prototypes = sorted({symbols[name] for name in declared} | {symbols[number]})
@@ -314,7 +313,7 @@ class CasadiCode:
 
     def _preamble(self, symbol: str, body: str) -> list[str]:
         """CasADi's preamble for one unit: its own symbol prefix; macros the body does not use left out."""
-        used = set(_OPTIONAL_USE.findall(body))
+        used = {name for name in _OPTIONAL_MACROS if name in body and re.search(rf"\b{name}\b", body)}
         out = []
         for text, optional in self.chunks:
             if optional and not optional & used:
@@ -393,7 +392,24 @@ def _inline_helpers(source: str) -> str:
     return _HELPER.sub(r"static inline \1 \2(", source)
 
 
-_IDENT = re.compile(r"\bcasadi_\w+\b")
+_IDENT = re.compile(r"casadi_\w+")                     # (whole words: see _words)
+
+
+def _whole(match: re.Match) -> bool:
+    """The match is not the tail of a longer word (what a leading \\b would test: patterns that
+    start with a literal instead let the scanner jump to it, 40 times faster on CasADi's code)."""
+    start = match.start()
+    return start == 0 or not (match.string[start - 1].isalnum() or match.string[start - 1] == "_")
+
+
+def _words(pattern: re.Pattern, text: str) -> list[str]:
+    """The whole-word matches of ``pattern`` in ``text`` (as findall with a leading \\b)."""
+    return [m.group(0) for m in pattern.finditer(text) if _whole(m)]
+
+
+def _sub_words(pattern: re.Pattern, replace, text: str) -> str:
+    """``text`` with each whole-word match of ``pattern`` replaced by ``replace(match text)``."""
+    return pattern.sub(lambda m: replace(m.group(0)) if _whole(m) else m.group(0), text)
 _STATIC_DEFINITION = re.compile(r"^static [^=(]*?\b(casadi_\w+)\s*[\[(]")
 
 

@@ -12,10 +12,11 @@ absolute), then, all in this process, as a notebook user would:
 - edit: one line of the file changed (launcher: the density scale height 7.2 -> 7.3 km;
   geo: Table 2's I_xy 53 -> 54 kg m^2), then ``load(path)`` and a filter.
 
-Medians of ``--repeats``, with where the time went (executing the model and hashing,
-generating the kernels, writing the C, compiling) for the edit, and the CPU seconds of the cold
-build and of the edit (this process, and the compilers it ran: less noisy than wall time on a
-shared machine). The phases overlap: units compile while the kernels are generated and written.
+Medians of ``--repeats``, with where the time went for the edit (executing the model and
+hashing; generating the kernels and their C, part by part; writing the API unit, header and
+Makefile; waiting for the compilers and linking), and the CPU seconds of the cold build and of the
+edit (this process, and the compilers it ran: less noisy than wall time on a shared machine). The
+phases overlap: each part's units compile while the next part is generated.
 Targets (issue 9, 2 cores): no-op <= 0.3 s; edit -> filter <= 3 s (launcher), <= 4 s (geo).
 """
 from __future__ import annotations
@@ -153,7 +154,7 @@ def run(args) -> int:
     print(f"model author's loop, medians of {args.repeats} (s); load average at the end "
           f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} cores" + (f"; options {overrides}" if overrides else ""))
     print(f"{'model':15s} {'cold build':>11s} {'no-op load':>11s} {'edit->filter':>13s} {'target':>7s}   "
-          "edit: model+hash / generate / write C / compile (s)   edit CPU s: python + compilers   units compiled")
+          "edit: model+hash / generate+C / write / compile (s)   edit CPU s: python + compilers   units compiled")
     for name in names:
         r, p, cpu = results[name], results[name]["edit_phases_s"], results[name]["edit_cpu_s"]
         print(f"{name:15s} {r['cold_s']:11.2f} {r['noop_s']:11.3f} {r['edit_s']:13.2f} "
