@@ -514,7 +514,7 @@ class UnitCompiler:
         self.cache = directory.parent / ".objects"
         self.cache.mkdir(exist_ok=True)
         self.jobs = max(1, jobs or os.cpu_count() or 1)
-        self.pool = CompilerPool(directory, max(1, self.jobs - 1))      # this process is busy generating
+        self.pool = CompilerPool(directory, max(1, self.jobs - 1), cores=self.jobs)     # this process is generating
         self.units: dict[str, _Unit] = {}
 
     def __enter__(self) -> "UnitCompiler":
@@ -657,10 +657,13 @@ class CompilerPool:
     """Compiler commands run ``jobs`` at a time (default: one per core) in the background while
     this process goes on: each in its own process group that dies with this process, started when
     submitted or at the next :meth:`poll` (a builder polls between its steps); leaving the ``with``
-    block on an exception (Ctrl-C) kills every group still running."""
+    block on an exception (Ctrl-C) kills every group still running. Queued commands start highest
+    priority first, and one of higher priority than every running command starts at once if a
+    core is left (``cores``, default: all): the longest compile never waits behind a shorter one."""
 
-    def __init__(self, cwd: Path, jobs: int | None = None):
+    def __init__(self, cwd: Path, jobs: int | None = None, cores: int | None = None):
         self.cwd, self.jobs = cwd, max(1, jobs or os.cpu_count() or 1)
+        self.cores = max(self.jobs, cores or os.cpu_count() or 1)
         self.pending: list[tuple[int, list[str]]] = []
         self.running: dict[int, tuple[subprocess.Popen, object]] = {}
         self.results: dict[int, tuple[int, str]] = {}
@@ -693,10 +696,15 @@ class CompilerPool:
                 self.results[index] = (proc.returncode, log.read())
                 log.close()
                 del self.running[index]
-        while self.pending and len(self.running) < self.jobs:
+        while self.pending and (len(self.running) < self.jobs or self._outranks_running()):
             index, cmd = self.pending.pop(0)
             log = tempfile.TemporaryFile(mode="w+")
             self.running[index] = (_spawn(cmd, self.cwd, log), log)
+
+    def _outranks_running(self) -> bool:
+        """The next queued command has a higher priority than every running one, and a core is free."""
+        first = self.priority[self.pending[0][0]]
+        return len(self.running) < self.cores and all(first > self.priority[index] for index in self.running)
 
     def cancel(self, index: int) -> None:
         """Drop a queued command, or kill a running one (its process group) and wait for it."""

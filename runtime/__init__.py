@@ -13,6 +13,8 @@ Functions in CasADi's virtual machine (``backend.kind == "casadi-vm"``).
 """
 from __future__ import annotations
 
+import time
+
 from symkf.codegen import CompilerNotFound, FilterSpec, build_validated, generate, make_config
 from symkf.models import get_model
 from .backends import CompiledBackend, StaleLibraryError, SymkfError, VirtualMachineBackend
@@ -53,10 +55,11 @@ def load(model, backend: str = "auto", **overrides) -> CompiledModel:
     ``backend``: "auto", "compiled" or "casadi-vm"; ``overrides``: codegen options."""
     if backend not in ("auto", "compiled", "casadi-vm"):
         raise ValueError("backend: expected 'auto', 'compiled' or 'casadi-vm'")
+    start = time.perf_counter()
     model = get_model(model)
     if backend != "casadi-vm":
         try:
-            result = build_validated(model, **overrides)          # get_model validated it
+            result = build_validated(model, start=start, **overrides)          # get_model validated it
         except CompilerNotFound as exc:
             if backend == "compiled":
                 raise

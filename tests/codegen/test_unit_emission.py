@@ -59,9 +59,24 @@ def test_parts_that_disagree_on_a_unit_fall_back_to_one_code_generator():
 
 def test_queued_compiles_start_longest_first(tmp_path):
     """One slot: the first command runs, the queued ones start by priority (a unit's length)."""
-    pool = build.CompilerPool(tmp_path, jobs=1)
-    for word, priority in (("first", 0), ("small", 10), ("large", 5000), ("medium", 300)):
+    pool = build.CompilerPool(tmp_path, jobs=1, cores=2)
+    for word, priority in (("first", 10 ** 6), ("small", 10), ("large", 5000), ("medium", 300)):
         pool.submit(["sh", "-c", f"echo {word} >> order.txt"], priority=priority)
     assert all(code == 0 for code, _ in pool.wait().values())
     assert (tmp_path / "order.txt").read_text().split() == ["first", "large", "medium", "small"]
 
+
+def test_a_compile_longer_than_every_running_one_starts_at_once_if_a_core_is_free(tmp_path):
+    """While the builder generates (one compiler slot), the longest unit (the UKF's sigma-point
+    propagation) does not wait behind a shorter one; a shorter one does; on one core nothing jumps."""
+    def run(cores):
+        (tmp_path / "order.txt").unlink(missing_ok=True)
+        pool = build.CompilerPool(tmp_path, jobs=1, cores=cores)
+        pool.submit(["sh", "-c", "sleep 0.5; echo running >> order.txt"], priority=100)
+        pool.submit(["sh", "-c", "echo shorter >> order.txt"], priority=10)
+        pool.submit(["sh", "-c", "echo longest >> order.txt"], priority=1000)
+        assert len(pool.running) == (2 if cores == 2 else 1)
+        assert all(code == 0 for code, _ in pool.wait().values())
+        return (tmp_path / "order.txt").read_text().split()
+    assert run(cores=2) == ["longest", "running", "shorter"]
+    assert run(cores=1) == ["running", "longest", "shorter"]
