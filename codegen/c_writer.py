@@ -410,6 +410,8 @@ def _words(pattern: re.Pattern, text: str) -> list[str]:
 def _sub_words(pattern: re.Pattern, replace, text: str) -> str:
     """``text`` with each whole-word match of ``pattern`` replaced by ``replace(match text)``."""
     return pattern.sub(lambda m: replace(m.group(0)) if _whole(m) else m.group(0), text)
+
+
 _STATIC_DEFINITION = re.compile(r"^static [^=(]*?\b(casadi_\w+)\s*[\[(]")
 
 
