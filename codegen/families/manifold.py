@@ -504,11 +504,9 @@ def predict_status(mf: ManifoldFunctions, symbols: Symbols, ok, in_domain=1):
 
 def predict_kernel(name: str, doc: str, ms: ManifoldSymbols, mf: ManifoldFunctions, x_pred, P_pred, ok, inputs,
                    extra_sym=None, extra_arg=None, in_domain=1):
-    s = ms.base.sym
     status = predict_status(mf, ms.base, ok, in_domain)
     return make_kernel(name, doc, ms.base, {**ms.sym, **(extra_sym or {})}, {**ms.arg, **(extra_arg or {})}, inputs,
-                       [("x", linalg.select(status == 0, x_pred, s["x"])),
-                        ("P", linalg.select(status == 0, P_pred, ms.sym["P"])), ("status", status)])
+                       [("x", x_pred), ("P", P_pred), ("status", status)])     # not written on a failure
 
 
 @dataclass
@@ -544,9 +542,11 @@ def chart_innovation(mf: ManifoldFunctions, name: str, m: MeasurementInput, z_pr
 
 
 def update_outputs(chart: Chart, update, x_old, P_old, msym, m: MeasurementInput | None = None):
-    """x, P (unchanged unless the update succeeded and passed the gate), y, S, status; a non-unit
+    """x, P (the update's, or the inputs when the gate refused it), y, S, status; a non-unit
     input quaternion, a non-unit quaternion measurement or a correction outside the chart is
-    SYMKF_ERR_DOMAIN (after NONFINITE)."""
+    SYMKF_ERR_DOMAIN (after NONFINITE). On an error status the outputs are not selected back to
+    the inputs: no backend writes a failed kernel's outputs (C ``_eval``, the VM's ``evaluate``),
+    so x and P stay unchanged without a select per entry."""
     x_new, P_new, y, S, ok, nis, finite = update[:7]
     in_domain = update[7] if len(update) > 7 else ca.SX(1)
     mask = msym["mask"] if m is None else m.mask
@@ -555,12 +555,11 @@ def update_outputs(chart: Chart, update, x_old, P_old, msym, m: MeasurementInput
     used = ca.sum1(mask) > 0
     domain = unit * (1 - used * (1 - in_domain))
     valid = 1 if m is None else m.valid
-    keep = ok * (1 - is_gated) * finite * domain * valid
     status = update_status(ok, is_gated, finite)
     status = linalg.select(finite * (1 - domain), STATUS_DOMAIN, status)
     if not isinstance(valid, int):
         status = linalg.select(finite * (1 - valid), STATUS_ARGS, status)
-    x_out, P_out = (linalg.select(keep, new, old) for new, old in ((x_new, x_old), (P_new, P_old)))
+    x_out, P_out = (linalg.select(is_gated, old, new) for new, old in ((x_new, x_old), (P_new, P_old)))
     return [("x", x_out), ("P", P_out), ("y", y), ("S", S), ("status", status)]
 
 
@@ -679,9 +678,10 @@ def mekf_predict_expr(model: Model, mf: ManifoldFunctions, ms: ManifoldSymbols):
 def mekf_step_kernel(model: Model, mf: ManifoldFunctions, ms: ManifoldSymbols, name: str, predict: Kernel,
                      update: Kernel, predicted) -> Kernel:
     """Predict then update at t + dt as ONE expression (same results and codes as
-    ``kernels.compose_step`` of the two kernels): the inputs are checked once (finiteness, |q| = 1,
-    P PSD), the predicted P needs no PSD check of its own (F P Fᵀ + Q_d of a PSD P), and the
-    outputs are selected once."""
+    ``kernels.compose_step`` of the two kernels): the inputs are checked once (|q| = 1, P PSD; their
+    finiteness by the callers), the predicted P needs no PSD check of its own (F P Fᵀ + Q_d of a PSD
+    P), the update works on the predicted x, P directly, and x, P are selected only by the gate (a
+    failed step's outputs are not written: :func:`update_outputs`)."""
     s, P = ms.base.sym, ms.sym["P"]
     msym, marg = ms.measurement(name)
     status_pred = predict_status(mf, ms.base, linalg.psd_flag(P))
@@ -689,8 +689,7 @@ def mekf_step_kernel(model: Model, mf: ManifoldFunctions, ms: ManifoldSymbols, n
     upd, m = mekf_update_expr(mf, ms, name, msym, model.measurements[name].wrap, state=(s["t"] + s["dt"], x1, P1))
     outputs = dict(update_outputs(mf.chart, upd, x1, P1, msym, m))
     failed = status_pred != 0
-    outputs.update(x=linalg.select(failed, s["x"], outputs["x"]), P=linalg.select(failed, P, outputs["P"]),
-                   status=linalg.select(failed, status_pred, outputs["status"]))
+    outputs["status"] = linalg.select(failed, status_pred, outputs["status"])   # x, P: not written then
     inputs = sorted(set(PREDICT_INPUTS) | set(UPDATE_INPUTS), key=CANONICAL_ORDER.index)
     doc = (f"{predict.doc.split(' (')[0]}; then {update.doc.replace(' at time t ', ' at t + dt ')} "
            "Both in one call.")
