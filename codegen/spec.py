@@ -180,7 +180,10 @@ class FilterSpec:
             "qukf", "aukf", "gd_simple", "gd_full").
         predict: the prediction kernel ("" if the filter has none: it only steps).
         update, step: {measurement: kernel}; ``step`` = predict then update in one call; a step
-            kernel is also the one the C run loop iterates (``Kernel.carried``).
+            kernel is also the one the C run loop iterates (``Kernel.carried``), unless ``run`` names
+            another.
+        run: {measurement: kernel} the run loop iterates instead of the step kernel: the same step
+            without the diagnostics (y, S), which a run discards (default: the step kernel).
         state: outputs carried from step to step (``("x", "P")`` or ``("x",)``).
         diagnostics: per-measurement outputs a user inspects after an update (``("y", "S")``).
         measurement_inputs: per-measurement inputs (``q``, ``z``, ``mask``, ``R``, ``gate``, or a
@@ -197,6 +200,7 @@ class FilterSpec:
     diagnostics: tuple[str, ...] = ("y", "S")
     measurement_inputs: tuple[str, ...] = ("q", "z", "mask", "R", "gate")
     defaults: dict[str, float] = field(default_factory=dict)
+    run: dict[str, str] = field(default_factory=dict)
 
     @property
     def measurements(self) -> tuple[str, ...]:
@@ -209,13 +213,13 @@ class FilterSpec:
         return {"name": self.name, "algorithm": self.algorithm, "predict": self.predict,
                 "update": dict(self.update), "step": dict(self.step), "state": list(self.state),
                 "diagnostics": list(self.diagnostics), "measurement_inputs": list(self.measurement_inputs),
-                "defaults": dict(self.defaults)}
+                "defaults": dict(self.defaults), "run": dict(self.run)}
 
     @classmethod
     def from_dict(cls, entry: dict) -> "FilterSpec":
         return cls(entry["name"], entry["algorithm"], entry["predict"], dict(entry["update"]),
                    dict(entry["step"]), tuple(entry["state"]), tuple(entry["diagnostics"]),
-                   tuple(entry["measurement_inputs"]), dict(entry["defaults"]))
+                   tuple(entry["measurement_inputs"]), dict(entry["defaults"]), dict(entry.get("run", {})))
 
 
 @dataclass

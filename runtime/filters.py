@@ -581,8 +581,9 @@ class Filter:
         return 0.0
 
     def _run(self, name: str, per_step: dict, n_steps: int) -> RunResult:
-        """The run loop, written once: the C ``<kernel>_run`` or, on the VM backend, step by step."""
-        kernel = self.spec.step[name]
+        """The run loop, written once: the C ``<kernel>_run`` or, on the VM backend, step by step
+        (the filter's run kernel, ``FilterSpec.run``, else its step kernel)."""
+        kernel = self.spec.run.get(name, self.spec.step[name])
         info = self._backend.kernels[kernel]
         constants = {**self._buffers, **self.measurements[name]}
         dtype = self._dtype

@@ -660,8 +660,27 @@ def mekf_kernels(model: Model, symbols: Symbols, fns: ModelFunctions) -> Family:
             f"mekf_update_{name}", f"Multiplicative EKF update with '{name}': H = dh(x (+) d)/dd, P - K S K^T, "
             "reset x = x (+) K y (masked, gated).", symbols, msym, marg, UPDATE_INPUTS,
             update_outputs(mf.chart, upd, s["x"], P, msym, m))
-        kernels += [update, mekf_step_kernel(model, mf, ms, name, predict, update, (x_pred, P_pred))]
-    return Family(kernels, [filter_spec("mekf", "manifold_ekf", kernels, model.measurements)])
+        step = mekf_step_kernel(model, mf, ms, name, predict, update, (x_pred, P_pred))
+        kernels += [update, step, run_kernel(step)]
+    run = {name: f"mekf_run_{name}" for name in model.measurements}
+    return Family(kernels, [filter_spec("mekf", "manifold_ekf", kernels, model.measurements, run=run)])
+
+
+def run_kernel(step: Kernel) -> Kernel:
+    """``mekf_run_<measurement>``: the fused step without its diagnostics y and S, the kernel the C
+    run loop iterates (``FilterSpec.run``): a run keeps only x, P and the status of each step, so
+    CasADi drops what only y and S need (the S matrix: ~0.25k of the MARG step's ~2.3k operations)
+    and the loop neither checks nor copies them. x, P and the status are the step's own expressions:
+    the same numbers and codes, except that the step wrapper also refuses a step whose y or S
+    output is not finite (SYMKF_ERR_NONFINITE) and the run does not look at them."""
+    f = step.function
+    keep = [i for i in range(f.n_out()) if f.name_out(i) in (*step.carried, "status")]
+    function = ca.Function(f.name().replace("_k_mekf_step_", "_k_mekf_run_"), f.sx_in(),
+                           [f.call(f.sx_in())[i] for i in keep], f.name_in(), [f.name_out(i) for i in keep],
+                           FUNCTION_OPTIONS)
+    return Kernel(step.name.replace("mekf_step_", "mekf_run_"), function,
+                  f"{step.doc} Without the diagnostics y, S: the step the run loop iterates.", step.inputs,
+                  tuple(step.outputs[i] for i in keep), step.carried, step.per_step)
 
 
 PREDICT_INPUTS = ["t", "dt", "x", "P", "u", "p", "Q"]

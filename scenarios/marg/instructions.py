@@ -7,11 +7,12 @@ samples to one part of the filter's C API:
 - ``predict``: ``marg_ekf_mekf_predict`` per sample (its wrapper's checks included);
 - ``update``: ``marg_ekf_mekf_update_marg`` per sample (the same);
 - ``step``: ``marg_ekf_mekf_step_marg``, predict + update in one call;
-- ``run``: ``marg_ekf_mekf_step_marg_run`` over the samples (the loop in C).
+- ``run``: ``marg_ekf_mekf_run_marg_run`` over the samples (the loop in C; it iterates the step
+  without the diagnostics y, S: ``FilterSpec.run``).
 
 Each part is counted over 3000 and over 1000 samples; the difference / 2000 is its cost per
 sample without start-up. For ``run`` the kernel's own share (callgrind's inclusive count of
-``marg_ekf_k_mekf_step_marg``) is reported too: the rest is the wrapper's checks and copies.
+``marg_ekf_k_mekf_run_marg``) is reported too: the rest is the wrapper's checks and copies.
 """
 from __future__ import annotations
 
@@ -55,7 +56,7 @@ int main(int argc, char **argv) {
       t[k] = r[0]; dt[k] = r[1]; memcpy(u + 3 * k, r + 2, 24); memcpy(q + 3 * k, r + 5, 24);
       memcpy(z + 7 * k, r + 8, 56); memcpy(mask + 7 * k, r + 15, 56);
     }
-    code = marg_ekf_mekf_step_marg_run(n, t, dt, x, P, u, head + 43, q, z, mask, head + 79, head + 128, xh, Ph, status);
+    code = marg_ekf_mekf_run_marg_run(n, t, dt, x, P, u, head + 43, q, z, mask, head + 79, head + 128, xh, Ph, status);
   } else {
     for (k = 0; k < n && (code == 0 || code == SYMKF_GATED); ++k) {
       const double *r = rows + ROW * k;
@@ -75,7 +76,7 @@ int main(int argc, char **argv) {
 
 
 def count_instructions(directory: Path, recording) -> dict:
-    """{part: instructions per sample} and ``run_kernel`` (the step kernel's share inside the run)."""
+    """{part: instructions per sample} and ``run_kernel`` (the run kernel's share inside the run)."""
     if shutil.which("valgrind") is None:
         return {}
     manifest = json.loads((directory / "manifest.json").read_text())
@@ -112,7 +113,7 @@ def _driver_input(recording, count: int) -> bytes:
 
 
 def _callgrind(exe: Path, part: str, n: int, data: bytes, tmp: Path) -> tuple[int, int]:
-    """(all instructions, inclusive instructions of the step kernel) of one driver run."""
+    """(all instructions, inclusive instructions of the run kernel) of one driver run."""
     out = tmp / f"cg.{part}.{n}"
     proc = subprocess.run(["valgrind", "--tool=callgrind", f"--callgrind-out-file={out}", str(exe), part, str(n)],
                           input=data, capture_output=True, check=True)
@@ -123,7 +124,7 @@ def _callgrind(exe: Path, part: str, n: int, data: bytes, tmp: Path) -> tuple[in
                                text=True).stdout
     kernel = 0
     for line in annotated.splitlines():
-        match = re.match(r"\s*([\d,]+)\s.*\bmarg_ekf_k_mekf_step_marg\s", line + " ")
+        match = re.match(r"\s*([\d,]+)\s.*\bmarg_ekf_k_mekf_run_marg\s", line + " ")
         if match:
             kernel = max(kernel, int(match.group(1).replace(",", "")))
     return total, kernel

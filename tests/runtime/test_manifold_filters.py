@@ -176,6 +176,9 @@ def test_manifest_records_quaternion_and_error_dimension(spinner):
     assert description["quaternions"][0]["name"] == "q"
     assert description["quaternions"][0]["states"] == [0, 1, 2, 3]
     assert spinner.filters["mekf"].algorithm == "manifold_ekf"
+    # the run loop iterates the step without its diagnostics y, S (test_run_equals_steps_and_tracks)
+    assert spinner.filters["mekf"].run == {name: f"mekf_run_{name}" for name in ("vectors", "gyro_z")}
+    assert [name for name, _ in spinner.backend.kernels["mekf_run_vectors"].outputs] == ["x", "P", "status"]
     f = spinner.filter("mukf", X0, P0, QPSD)
     assert f.P.shape == (5, 5) and f.x.shape == (6,)
 
