@@ -296,7 +296,7 @@ def build() -> Model:
     # -O3 for the glue a dynamics edit does not recompile (the API unit, the filter kernels, the event
     # dispatchers of f_d): 1,200 fewer instructions per EKF step, 800 per UKF step (issue 12), the same
     # numbers (IEEE semantics, -std=c99 keeps floating-point contraction off).
-    m.codegen_defaults = {"rk4_substeps": 1, "optimization": "-O1 -fno-math-errno",
+    m.codegen_defaults = {"rk4_substeps": 1, "optimization": "-O1 -fno-math-errno -fno-thread-jumps",
                           "unit_optimization": {pattern: "-O3 -fno-math-errno" for pattern in GLUE_UNITS}}
     return m
 

@@ -257,6 +257,26 @@ SELF_COSTS = {"wrapper": ("step", ("{m}_{f}_step_radar", "{m}_{f}_step_radar_eva
               "loop": ("run", ("{m}_{f}_step_radar_run",))}
 
 
+#: Where the fused step's instructions go (rows of the parts table, issue 12): exclusive counts of
+#: the functions of one ``step`` call, grouped by a test on the function's name (``m`` the model,
+#: ``f`` the filter): the propagation (f_d and F, or f_d at the sigma points, with their event
+#: dispatchers), the measurement function (h and H; the UKF inlines h in its update kernel), the
+#: predict and update kernels' own work, and the C math library (sincos, atan2, exp, ...).
+STEP_FUNCTIONS = {
+    "step: propagation": lambda name, m, f: name.startswith(f"{m}_fn_") and not name.startswith(f"{m}_fn_h_"),
+    "step: h and H": lambda name, m, f: name.startswith(f"{m}_fn_h_"),
+    "step: predict kernel": lambda name, m, f: name.startswith(f"{m}_k_{f}_predict"),
+    "step: update kernel": lambda name, m, f: name.startswith(f"{m}_k_{f}_update_"),
+    "step: libm": lambda name, m, f: not name.startswith(f"{m}_") and name != "main",
+}
+
+
+def step_breakdown(counts: dict[str, float], model: str, family: str) -> dict[str, float]:
+    """:data:`STEP_FUNCTIONS`'s rows from the exclusive counts per function of a ``step`` call."""
+    return {row: sum(n for name, n in counts.items() if test(name, model, family))
+            for row, test in STEP_FUNCTIONS.items()}
+
+
 def time_c_loop(work: Workload, steps: int, instructions: bool = False, directory: Path | None = None) -> dict[str, dict]:
     """Compile the C loop against build/launcher/ (library flags; or ``directory``, a bundle
     built elsewhere) and run it for both filters; with ``instructions``, also count instructions
@@ -285,6 +305,7 @@ def time_c_loop(work: Workload, steps: int, instructions: bool = False, director
                 parts = {part: total for part, (total, _) in counts.items()}
                 for row, (part, functions) in SELF_COSTS.items():
                     parts[row] = sum(counts[part][1].get(f.format(m="launcher", f=family), 0) for f in functions)
+                parts.update(step_breakdown(counts["step"][1], "launcher", family))
                 out[family]["instructions_per_step"] = parts["step"]
                 out[family]["instructions_by_part"] = parts
     return out
@@ -429,6 +450,18 @@ INSTRUCTIONS_2CE85CB = {
             "loop": 251},
 }
 
+#: Main e7e3660 (before this session's instruction cuts of issue 12: glue at -O1, helpers called,
+#: full-matrix UKF covariances), counted by this harness on that commit's build, with the step's
+#: breakdown by function (:data:`STEP_FUNCTIONS`).
+INSTRUCTIONS_E7E3660 = {
+    "ekf": {"predict": 12132, "update": 5714, "step": 17146, "run": 16895, "wrapper": 1217, "composition": 0,
+            "loop": 336, "step: propagation": 6681, "step: h and H": 337, "step: predict kernel": 2531,
+            "step: update kernel": 3580, "step: libm": 2748},
+    "ukf": {"predict": 35322, "update": 12809, "step": 47482, "run": 47223, "wrapper": 1228, "composition": 0,
+            "loop": 336, "step: propagation": 11208, "step: h and H": 0, "step: predict kernel": 3820,
+            "step: update kernel": 5113, "step: libm": 26060},
+}
+
 
 def targets(report: dict) -> dict:
     """Each issue-12 measure: the issue's figure, 32a5243's, the target, this run's, and whether it is met."""
@@ -455,17 +488,19 @@ def campaign_lines(report: dict) -> list[str]:
 
 def instruction_parts_table(report: dict) -> list[str]:
     """Instructions per call of each part (predict, update, fused step, a step inside the run
-    loop) and of the code around the kernels (SELF_COSTS), on 32a5243, 2ce85cb and now."""
+    loop), of the code around the kernels (SELF_COSTS) and of the step's functions (STEP_FUNCTIONS),
+    on 32a5243, 2ce85cb, e7e3660 and now."""
     parts = {r["filter"]: r["instructions_by_part"] for r in report["rows"] if "instructions_by_part" in r}
     if not parts:
         return []
-    columns = (("32a5243", INSTRUCTIONS_32A5243), ("2ce85cb", INSTRUCTIONS_2CE85CB), ("now", parts))
+    columns = (("32a5243", INSTRUCTIONS_32A5243), ("2ce85cb", INSTRUCTIONS_2CE85CB), ("e7e3660", INSTRUCTIONS_E7E3660),
+               ("now", parts))
     lines = ["", f"{'instructions per call':<26}" + "".join(f"{f.upper() + ' ' + when:>13}" for f in FILTERS
                                                             for when, _ in columns)]
 
     def cell(value) -> str:
         return f"{'-':>13}" if value is None else f"{value:>13,.0f}"
-    for part in (*PARTS, *SELF_COSTS):
+    for part in (*PARTS, *SELF_COSTS, *STEP_FUNCTIONS):
         label = {"wrapper": "step: wrapper, checks", "composition": "step: composition",
                  "loop": "run: loop, checks"}.get(part, part)
         lines.append(f"{label:<26}" + "".join(cell(figures[f].get(part)) for f in FILTERS for _, figures in columns))

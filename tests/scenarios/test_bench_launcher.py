@@ -17,3 +17,14 @@ def test_bench_json_has_every_path(capsys, launcher_compiled):
     value = {(r["filter"], r["path"]): r["us_per_step"] for r in report["rows"]}
     assert abs(report["ratios"]["ukf"]["compiled_step/c_loop"]
                - value[("ukf", "compiled_step")] / value[("ukf", "c_loop")]) < 1e-9
+
+
+def test_step_breakdown_groups_every_function_of_a_step_once():
+    """The parts table's rows of a step (issue 12): each function counted in one row, libm apart."""
+    from symkf.scenarios.launcher.bench import step_breakdown
+    counts = {"launcher_fn_segment_and_jac": 5000.0, "launcher_fn_fd_and_jac": 150.0, "launcher_fn_h_and_jac_radar": 300.0,
+              "launcher_k_ekf_predict": 2000.0, "launcher_k_ekf_update_radar": 3000.0, "__sincos_fma": 2100.0,
+              "__ieee754_atan2_fma": 230.0, "launcher_ekf_step_radar": 460.0, "main": 50.0}
+    rows = step_breakdown(counts, "launcher", "ekf")
+    assert rows == {"step: propagation": 5150.0, "step: h and H": 300.0, "step: predict kernel": 2000.0,
+                    "step: update kernel": 3000.0, "step: libm": 2330.0}
