@@ -295,9 +295,13 @@ def build() -> Model:
     # half the compile time of -O2/-O3 (the model author's edit -> loaded filter loop, issue 9).
     # -O3 for the glue a dynamics edit does not recompile (the API unit, the filter kernels, the event
     # dispatchers of f_d): 1,200 fewer instructions per EKF step, 800 per UKF step (issue 12), the same
-    # numbers (IEEE semantics, -std=c99 keeps floating-point contraction off).
+    # numbers (IEEE semantics, -std=c99 keeps floating-point contraction off). -fno-thread-jumps for the
+    # model's functions: GCC's jump threading copies CasADi's "arg ? arg[k] : 0" loads, and sin and cos
+    # of one copy each are then not merged into one sincos call (250 instructions per step; the kernels
+    # do better with it: -fthread-jumps, also written out so that the bundle's Makefile, which appends
+    # a unit's own flags to the default ones, compiles them as the library does).
     m.codegen_defaults = {"rk4_substeps": 1, "optimization": "-O1 -fno-math-errno -fno-thread-jumps",
-                          "unit_optimization": {pattern: "-O3 -fno-math-errno" for pattern in GLUE_UNITS}}
+                          "unit_optimization": {pattern: "-O3 -fno-math-errno -fthread-jumps" for pattern in GLUE_UNITS}}
     return m
 
 

@@ -21,6 +21,13 @@ innovation is zero, its row of H and its sigma-point deviations are zero and its
 is replaced by 1, so it contributes exactly nothing; an all-masked update returns x and P unchanged.
 A failed Cholesky factorisation returns status SYMKF_ERR_NOT_PD and the inputs x, P unchanged.
 
+**Input checks.** The kernels do not test their inputs for NaN/Inf, except an update's x and P: every
+caller does first, with one rule (every input finite; z only where its mask is > 0.5): the C
+wrappers and run loops (codegen/c_writer.py) and the CasADi-VM backend (runtime/backends.py),
+as for the manifold family. An in-kernel test repeated theirs at one multiply-add per input entry
+(about 90 in the launcher's predict, 70 in its update) on every step (issue 12). The update's x
+and P are tested: in a fused step they are the prediction's outputs, which no caller has seen.
+
 A predict kernel's x and P are its result only with status 0: nothing reads them otherwise (the C
 API and the VM backend return a nonzero status without copying the outputs, and the fused step
 keeps its inputs when the prediction failed), so they are not selected back to the inputs: 42
@@ -34,9 +41,9 @@ import casadi as ca
 from symkf.models.base import Model
 from .. import linalg
 from ..kernels import (ModelFunctions, Symbols, all_finite, compose_step, filter_spec, innovation,
-                       make_kernel, masked_finite, masked_noise, register_family, update_outputs)
+                       make_kernel, masked_noise, register_family, update_outputs)
 from ..discretize import measurement_function
-from ..spec import STATUS_DOMAIN, STATUS_NONFINITE, STATUS_NOT_PD, Arg, Family
+from ..spec import STATUS_DOMAIN, STATUS_NOT_PD, Arg, Family
 
 
 # ---------------------------------------------------------------------- process noise
@@ -91,21 +98,20 @@ def ekf_update_expr(symbols: Symbols, fns: ModelFunctions, name: str, msym: dict
     return x_new, P_new, y, S, ok * linalg.psd_flag(P), nis
 
 
-def update_inputs_finite(symbols: Symbols, msym: dict, extra=()) -> ca.SX:
-    """Every input of an update is finite (z only where the mask uses it)."""
+def update_inputs_finite(symbols: Symbols) -> ca.SX:
+    """The update's x and P are finite: the one check of its inputs the kernel makes itself (see
+    "Input checks" in the module docstring: a fused step's predicted x and P reach the update
+    without passing a caller's test; an overflowed prediction is reported as NONFINITE)."""
     s = symbols.sym
-    return all_finite([s["x"], s["P"], s["u"], s["p"], msym["q"], msym["mask"], msym["R"], msym["gate"], *extra]) * \
-        masked_finite(msym["z"], msym["mask"])
+    return all_finite([s["x"], s["P"]])
 
 
 UPDATE_INPUTS = ["t", "x", "P", "u", "p", "q", "z", "mask", "R", "gate"]
 
 
-def predict_status(symbols: Symbols, ok: ca.SX, Q: ca.SX, extra=()) -> ca.SX:
-    """NONFINITE for a NaN/Inf input, else NOT_PD unless ``ok`` (P could be factorised), else 0."""
-    s = symbols.sym
-    finite = all_finite([s["t"], s["dt"], s["x"], s["P"], s["u"], s["p"], Q, *extra])
-    return linalg.select(finite, linalg.select(ok, 0, STATUS_NOT_PD), STATUS_NONFINITE)
+def predict_status(ok: ca.SX) -> ca.SX:
+    """NOT_PD unless ``ok`` (P could be factorised), else 0 (the inputs are finite: "Input checks")."""
+    return linalg.select(ok, 0, STATUS_NOT_PD)
 
 
 def ekf_kernels(model: Model, symbols: Symbols, fns: ModelFunctions) -> Family:
@@ -113,7 +119,7 @@ def ekf_kernels(model: Model, symbols: Symbols, fns: ModelFunctions) -> Family:
     qsym, qarg = noise_symbols(model)
     Q = qsym.get("Q", s["Q"])
     x_pred, P_pred = ekf_predict_expr(symbols, fns, s["x"], s["P"], s["t"], s["dt"], Q)
-    status = predict_status(symbols, linalg.psd_flag(s["P"]), Q)
+    status = predict_status(linalg.psd_flag(s["P"]))
     kernels = [make_kernel("ekf_predict", _predict_doc(model, "EKF", "P = F P F^T + Q_d"),
                        symbols, qsym, qarg, ["t", "dt", "x", "P", "u", "p", "Q"],
                        [("x", x_pred), ("P", P_pred), ("status", status)])]
@@ -123,7 +129,7 @@ def ekf_kernels(model: Model, symbols: Symbols, fns: ModelFunctions) -> Family:
         kernels.append(make_kernel(
             f"ekf_update_{name}", f"EKF update with measurement '{name}' at time t (Joseph form, masked, gated).",
             symbols, msym, marg, UPDATE_INPUTS,
-            update_outputs(upd, s["x"], s["P"], msym["gate"], msym["mask"], update_inputs_finite(symbols, msym))))
+            update_outputs(upd, s["x"], s["P"], msym["gate"], msym["mask"], update_inputs_finite(symbols))))
         kernels.append(compose_step(f"ekf_step_{name}", kernels[0], kernels[-1]))
     return Family(kernels, [filter_spec("ekf", "ekf", kernels, model.measurements)])
 
@@ -247,7 +253,7 @@ def ukf_kernels(model: Model, symbols: Symbols, fns: ModelFunctions) -> Family:
     qsym, qarg = noise_symbols(model)
     Q = qsym.get("Q", s["Q"])
     x_pred, P_pred, ok_pred = ukf_predict_expr(symbols, fns, s["x"], s["P"], s["t"], s["dt"], Q)
-    status = predict_status(symbols, ok_pred, Q, [s["kappa"]])
+    status = predict_status(ok_pred)
     status = linalg.select(s["kappa"] + model.nx > 0, status, STATUS_DOMAIN)
     kernels = [make_kernel("ukf_predict", _predict_doc(model, "UKF", "2n+1 sigma points, eq (1)-(3)"),
                        symbols, qsym, qarg, ["t", "dt", "x", "P", "u", "p", "Q", "kappa"],
@@ -259,7 +265,7 @@ def ukf_kernels(model: Model, symbols: Symbols, fns: ModelFunctions) -> Family:
             f"ukf_update_{name}", f"UKF update with measurement '{name}' at time t (sigma points redrawn, masked).",
             symbols, msym, marg, UPDATE_INPUTS + ["kappa"],
             update_outputs(upd, s["x"], s["P"], msym["gate"], msym["mask"],
-                           update_inputs_finite(symbols, msym, [s["kappa"]]))))
+                           update_inputs_finite(symbols))))
         kernels.append(compose_step(f"ukf_step_{name}", kernels[0], kernels[-1]))
     return Family(kernels, [filter_spec("ukf", "ukf", kernels, model.measurements, defaults={"kappa": 0.0})])
 
