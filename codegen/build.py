@@ -631,11 +631,30 @@ def _term_with_parent() -> None:
         pass
 
 
+@functools.lru_cache(maxsize=1)
+def _pdeathsig_wrapper() -> tuple[str, ...]:
+    """``setpriv --pdeathsig TERM --`` if util-linux's setpriv has that option (2.33+), else ().
+    It sets what :func:`_term_with_parent` sets, from a program of its own: without a Python
+    ``preexec_fn`` the compiler is started by vfork, not by a fork of this (large) process,
+    about 2 ms instead of 10-20 per unit on the build's serial path."""
+    setpriv = shutil.which("setpriv")
+    if setpriv is None:
+        return ()
+    try:
+        ok = subprocess.run([setpriv, "--pdeathsig", "TERM", "--", "true"], capture_output=True, timeout=10).returncode == 0
+    except (OSError, subprocess.TimeoutExpired):
+        ok = False
+    return (setpriv, "--pdeathsig", "TERM", "--") if ok else ()
+
+
 def _spawn(cmd: list[str], cwd: Path, stderr) -> subprocess.Popen:
+    """The command in its own session and process group, under the guard shell that kills the
+    group when this process dies (SIGTERM from PR_SET_PDEATHSIG, set by setpriv or in the child)."""
     linux = sys.platform.startswith("linux")
-    return subprocess.Popen((_GROUP_GUARD if linux else []) + cmd, cwd=cwd, stdout=subprocess.DEVNULL,
+    wrapper = list(_pdeathsig_wrapper()) if linux else []
+    return subprocess.Popen(wrapper + (_GROUP_GUARD if linux else []) + cmd, cwd=cwd, stdout=subprocess.DEVNULL,
                             stderr=stderr, start_new_session=True,
-                            preexec_fn=_term_with_parent if linux else None)
+                            preexec_fn=_term_with_parent if linux and not wrapper else None)
 
 
 def run_compiler(cmd: list[str], cwd: Path) -> tuple[int, str]:

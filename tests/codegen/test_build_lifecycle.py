@@ -175,8 +175,14 @@ def test_concurrent_builds_of_two_configurations_both_succeed(tmp_path, write_mo
     assert not list(private_build.glob(".*.tmp-*")) and not list(private_build.glob(".*.old-*"))
 
 
-def test_killed_build_leaves_no_compiler_running(tmp_path, private_build):
-    code = "from symkf.codegen import build_model; build_model('launcher', rk4_substeps=3)"
+@pytest.mark.parametrize("started_by", ["setpriv", "preexec_fn"])
+def test_killed_build_leaves_no_compiler_running(tmp_path, private_build, started_by):
+    """The guard shell learns of the build's death by PR_SET_PDEATHSIG, set by util-linux's
+    setpriv where it has --pdeathsig (the compiler then starts by vfork), else in the child."""
+    if started_by == "setpriv" and not build._pdeathsig_wrapper():
+        pytest.skip("no setpriv with --pdeathsig here")
+    fallback = "build._pdeathsig_wrapper = lambda: (); " if started_by == "preexec_fn" else ""
+    code = f"from symkf.codegen import build; {fallback}build.build_model('launcher', rk4_substeps=3)"
     proc = subprocess.Popen([sys.executable, "-c", code])
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline and not _processes_inside(private_build):
