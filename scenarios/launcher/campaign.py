@@ -65,14 +65,13 @@ PRESETS = {
                    "kappa": 0.0, "ekf_q_scale": 1.0, "ukf_q_scale": 1.0, "stations": "spherical"}},
 }
 TUNING = PRESETS["correct"]["tuning"]
-#: The campaign build: codegen options added to a preset's, here the whole library at -O3, where
-#: the model's default build (models/launcher.py) keeps the dynamics units at -O1 for the author's
-#: edit loop. IEEE semantics only (no -ffast-math; -std=c99 keeps contraction off): per-run
-#: results bit-identical to the default build's (tested). Measured on the default campaign (issue
-#: 12, 2-core VM, interleaved, twice each): compiled runs 34.3 -> 32.2 CPU-s, the campaign 37.8 ->
-#: 35.2 CPU-s; a cold build costs 16.0 instead of 11.6 s of compiler CPU, once (its own folder by
-#: content hash, next to the default build's).
-CAMPAIGN_BUILD = {"optimization": "-O3 -fno-math-errno"}
+#: The campaign build: codegen options added to a preset's (``Campaign(build=...)``); none, i.e. the
+#: model's default build (models/launcher.py). Measured for issue 12 (default campaign, interleaved,
+#: twice each, 2-core VM): the whole library at -O3 (``{"optimization": "-O3 -fno-math-errno"}``,
+#: IEEE only, per-run results bit-identical, tested) cut the compiled runs 34.3 -> 32.2 CPU-s
+#: against 080f4df's default build, but 31.9 vs 31.7 against c0fe573's (glue units at -O3, the
+#: model's functions at -O1 -fno-thread-jumps), for 4.4 s more compiler CPU per cold build.
+CAMPAIGN_BUILD: dict = {}
 FILTERS = ("ekf", "ukf")
 EVENTS = tuple(get_model("launcher").events)     # Table 2's switches (s), declared by the model
 NEES_STRIDE = 5          # NEES every 5th step (0.25 s at 20 Hz): plotted, not tabulated
