@@ -6,6 +6,9 @@ part is made. The bundle is the same as one code generator's over every kernel (
 between parts falls back to that), the kernels keep the model's order, and the families with the
 longest compile are made first.
 """
+import time
+from pathlib import Path
+
 import pytest
 
 from symkf.codegen import build, c_writer, generate, make_config
@@ -57,11 +60,26 @@ def test_parts_that_disagree_on_a_unit_fall_back_to_one_code_generator():
     assert c_writer.function_units(bundle, per_part) == c_writer.part_units(bundle)
 
 
+#: A shell command that waits until the test creates the file ``go`` (so that what the pool does
+#: while it runs never depends on how fast the machine is), then appends ``word`` to order.txt.
+def _after_go(word: str) -> list[str]:
+    return ["sh", "-c", f"while [ ! -e go ]; do sleep 0.01; done; echo {word} >> order.txt"]
+
+
+def _wait_for_line(path: Path, word: str, timeout: float = 30.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not (path.exists() and word in path.read_text().split()):
+        assert time.monotonic() < deadline, f"{word} never written"
+        time.sleep(0.01)
+
+
 def test_queued_compiles_start_longest_first(tmp_path):
     """One slot: the first command runs, the queued ones start by priority (a unit's length)."""
     pool = build.CompilerPool(tmp_path, jobs=1, cores=2)
-    for word, priority in (("first", 10 ** 6), ("small", 10), ("large", 5000), ("medium", 300)):
+    pool.submit(_after_go("first"), priority=10 ** 6)
+    for word, priority in (("small", 10), ("large", 5000), ("medium", 300)):
         pool.submit(["sh", "-c", f"echo {word} >> order.txt"], priority=priority)
+    (tmp_path / "go").touch()
     assert all(code == 0 for code, _ in pool.wait().values())
     assert (tmp_path / "order.txt").read_text().split() == ["first", "large", "medium", "small"]
 
@@ -70,12 +88,16 @@ def test_a_compile_longer_than_every_running_one_starts_at_once_if_a_core_is_fre
     """While the builder generates (one compiler slot), the longest unit (the UKF's sigma-point
     propagation) does not wait behind a shorter one; a shorter one does; on one core nothing jumps."""
     def run(cores):
-        (tmp_path / "order.txt").unlink(missing_ok=True)
+        for name in ("order.txt", "go"):
+            (tmp_path / name).unlink(missing_ok=True)
         pool = build.CompilerPool(tmp_path, jobs=1, cores=cores)
-        pool.submit(["sh", "-c", "sleep 0.5; echo running >> order.txt"], priority=100)
+        pool.submit(_after_go("running"), priority=100)
         pool.submit(["sh", "-c", "echo shorter >> order.txt"], priority=10)
         pool.submit(["sh", "-c", "echo longest >> order.txt"], priority=1000)
         assert len(pool.running) == (2 if cores == 2 else 1)
+        if cores == 2:
+            _wait_for_line(tmp_path / "order.txt", "longest")     # it runs beside the first one
+        (tmp_path / "go").touch()
         assert all(code == 0 for code, _ in pool.wait().values())
         return (tmp_path / "order.txt").read_text().split()
     assert run(cores=2) == ["longest", "running", "shorter"]
