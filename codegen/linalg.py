@@ -38,31 +38,6 @@ def gram(U: ca.SX) -> ca.SX:
     return symmetric(U.shape[1], lambda i, j: ca.dot(U[:, i], U[:, j]))
 
 
-def weighted_sum(weights: list, terms, group: bool = True) -> ca.SX:
-    """sum_k w_k t_k, the terms of equal weights (the same SX object: the UKF's 2n equal sigma
-    weights) summed first and scaled once: one multiplication per weight group, not per term.
-    ``group=False``: w_k t_k term by term, in order."""
-    total, groups = 0, []
-    for w, term in zip(weights, terms):
-        if group and groups and groups[-1][0] is w:
-            groups[-1][1] = groups[-1][1] + term
-        else:
-            groups.append([w, term])
-    for w, group_sum in groups:
-        total = total + w * group_sum
-    return total
-
-
-def weighted_outer_sum(weights: list, A: list, B: list | None = None) -> ca.SX:
-    """sum_k w_k a_k b_k^T for columns a_k, b_k (:func:`weighted_sum` of the products); with B
-    omitted, sum_k w_k a_k a_k^T, its lower triangle computed and mirrored: exactly symmetric
-    (a_ki a_kj = a_kj a_ki), so no symmetrization is needed and half the products are skipped."""
-    if B is None:
-        return symmetric(A[0].shape[0], lambda i, j: weighted_sum(weights, (a[i] * a[j] for a in A)))
-    return ca.vertcat(*[ca.horzcat(*[weighted_sum(weights, (a[i] * b[j] for a, b in zip(A, B)))
-                                     for j in range(B[0].shape[0])]) for i in range(A[0].shape[0])])
-
-
 def symmetric_part(A: ca.SX, i: int, j: int) -> ca.SX:
     """Entry (i, j) of 0.5 (A + A^T) (A itself on the diagonal)."""
     return A[i, i] if i == j else 0.5 * (A[i, j] + A[j, i])

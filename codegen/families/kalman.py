@@ -166,14 +166,13 @@ def sigma_points(x: ca.SX, P: ca.SX, kappa: ca.SX):
 
 
 def _weighted_mean(points: list[ca.SX], weights: list, wrap: tuple[bool, ...] | None = None) -> ca.SX:
-    """Weighted mean; wrapped components are averaged as deviations from the first point. Term by
-    term, in order (not grouped by equal weights as the covariances are: the 12 equal-weight points'
-    sum of coordinates such as r ~ 6.4e6 m rounds differently, a change of the mean that the filter
-    carries to 1e-5 sigma over a flight; the covariances' grouping leaves x bit-identical)."""
+    """Weighted mean; wrapped components are averaged as deviations from the first point."""
     if not wrap or not any(wrap):
-        return linalg.weighted_sum(weights, points, group=False)
+        return sum((w * pt for w, pt in zip(weights, points)), ca.SX.zeros(points[0].shape))
     ref = points[0]
-    return ref + linalg.weighted_sum(weights, (_angle_difference(pt, ref, wrap) for pt in points), group=False)
+    deviation = sum((w * _angle_difference(pt, ref, wrap) for w, pt in zip(weights, points)),
+                    ca.SX.zeros(ref.shape))
+    return ref + deviation
 
 
 def _angle_difference(a: ca.SX, b: ca.SX, wrap: tuple[bool, ...]) -> ca.SX:
@@ -198,10 +197,16 @@ def ukf_predict_expr(symbols: Symbols, fns: ModelFunctions, x, P, t, dt, Q):
 
 
 def _sigma_covariance(weights: list, deviations: list[ca.SX], Qd: ca.SX) -> ca.SX:
-    """Eq (3): sum_i W_i d_i d_i^T + Q_d, lower triangle computed and mirrored (exactly symmetric;
-    Q_d's symmetric part). The equal weights W_1..W_2n multiply one sum of products, not each term."""
-    spread = linalg.weighted_outer_sum(weights, deviations)
-    return linalg.symmetric(Qd.shape[0], lambda i, j: spread[i, j] + linalg.symmetric_part(Qd, i, j))
+    """Eq (3): sum_i W_i d_i d_i^T + Q_d, every term in order and then symmetrized. Grouping the
+    equal weights or computing one triangle saves ~1k instructions per UKF step but moves P by
+    round-off, which the campaign's excursion runs amplify into Table 3 (20 Hz large V 0.255 ->
+    0.169 m/s; a paper-like 10 Hz run turned diverged): kept as it was, bit for bit."""
+    return linalg.symmetrize(_weighted_products(weights, deviations, deviations) + Qd)
+
+
+def _weighted_products(weights: list, A: list[ca.SX], B: list[ca.SX]) -> ca.SX:
+    """sum_k (w_k a_k) b_k^T, term by term in order (the bit pattern of every earlier release)."""
+    return sum((w * a @ b.T for w, a, b in zip(weights, A, B)), ca.SX.zeros(A[0].shape[0], B[0].shape[0]))
 
 
 def ukf_predict_deviations(symbols: Symbols, fns: ModelFunctions, x, P, t, dt, Q):
@@ -236,7 +241,7 @@ def ukf_update_expr(symbols: Symbols, fns: ModelFunctions, name: str, msym: dict
     dx = deviations if deviations is not None else [pt - x for pt in points]
     R = masked_noise(msym["R"], mask)
     S = _sigma_covariance(weights, dz, R)
-    Pxz = linalg.weighted_outer_sum(weights, dx, dz)
+    Pxz = _weighted_products(weights, dx, dz)
     L, ok_s = linalg.cholesky(S)
     # With U = L^-1 Pxz^T: K y = U^T L^-1 y and K S K^T = U^T U (better conditioned than forming K)
     U = linalg.solve_lower(L, Pxz.T)
