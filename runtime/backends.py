@@ -18,7 +18,7 @@ import numpy as np
 
 from symkf.codegen.build import read_manifest, verified_library
 from symkf.codegen.c_writer import passing
-from symkf.codegen.spec import STATUS_CODES, STATUS_NONFINITE, Arg, Bundle, Kernel
+from symkf.codegen.spec import STATUS_CODES, STATUS_GATED, STATUS_NONFINITE, Arg, Bundle, Kernel
 
 
 class SymkfError(RuntimeError):
@@ -205,14 +205,14 @@ class VirtualMachineBackend:
                 return STATUS_NONFINITE
             results = function.call(args)
             status = int(results[-1])
-            if status:
+            if status not in (0, STATUS_GATED):       # a gated update's outputs are written, as in C
                 return status
             values = [np.asarray(r, dtype=float).reshape(-1, order="F") for r in results[:-1]]
             if not all(np.isfinite(v).all() for v in values):
                 return STATUS_NONFINITE
             for (name, _), value in zip(info.outputs[:-1], values):
                 buffers[name].reshape(-1, order="F")[:] = value
-            return 0
+            return status
 
         return BoundCall(kernel, evaluate)
 

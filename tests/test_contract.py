@@ -557,6 +557,25 @@ def test_gate_refuses_an_outlier_and_counts_it(compiled, case):
     assert result.gated_steps == 1 and result.status[2] == STATUS_GATED and not result.failed_steps.size
 
 
+@pytest.mark.parametrize("case", [c for c in CASES if c.model in ("launcher", "geo_satellite")], ids=lambda c: c.id)
+def test_a_gated_step_applies_the_prediction_on_both_backends(compiled, vm, case):
+    """SYMKF_GATED from step(): the prediction is applied and the update refused, in C and in the
+    VM alike (the VM wrote nothing on a gated step: its state stayed at the previous time)."""
+    a = case.inputs(2)
+    states = []
+    for models in (compiled, vm):
+        f = case.make(models[case.model])
+        f.set_gate(case.measurement, probability=0.999)
+        step(case, f, 1)
+        before = f.x.copy()
+        outlier = np.array(a["z"]) + 1e3 * np.sqrt(np.diag(f.R(case.measurement)))
+        assert step(case, f, 2, z=outlier) == STATUS_GATED
+        assert not np.array_equal(f.x, before)
+        states.append((f.x.copy(), f.P.copy(), f.y(case.measurement).copy()))
+    for c_value, vm_value in zip(*states):
+        np.testing.assert_allclose(vm_value, c_value, rtol=1e-12, atol=1e-14)
+
+
 @pytest.mark.parametrize("case", [c for c in CASES if c.model == "attitude"], ids=lambda c: c.id)
 def test_attitude_gate_refuses_an_outlier_and_counts_it(compiled, case):
     """Paper 000's filters through the generic gate: a star-tracker quaternion 11° off (σ 0.4 mrad)
