@@ -31,7 +31,6 @@ branching event split). The table ends with issue 12's measures: the figure in t
 from __future__ import annotations
 
 import json
-import re
 import shutil
 import statistics
 import subprocess
@@ -42,10 +41,10 @@ from pathlib import Path
 import numpy as np
 
 from symkf.codegen import build_model
-from symkf.codegen.build import compiler
 from symkf.models import launcher as L
 from symkf.runtime import load
 from symkf.runtime.reference import ReferenceFilter
+from symkf.scenarios import callgrind
 from symkf.scenarios.campaign import compiled_model
 from .campaign import TUNING, Campaign, initial_estimate, Case
 from .truth import propagate, radar_track
@@ -283,14 +282,8 @@ def time_c_loop(work: Workload, steps: int, instructions: bool = False, director
     per call of each part under callgrind (deterministic, unlike wall-clock time on a shared machine)."""
     if directory is None:
         directory = build_model("launcher").directory
-    manifest = json.loads((directory / "manifest.json").read_text())
     with tempfile.TemporaryDirectory() as tmp:
-        exe = Path(tmp) / "c_loop"
-        (Path(tmp) / "c_loop.c").write_text(C_LOOP)
-        cmd = compiler().split() + ["-std=c99", *manifest["optimization"].split(), "-D_POSIX_C_SOURCE=199309L",
-                                    f"-I{directory}", "-o", str(exe), str(Path(tmp) / "c_loop.c"),
-                                    str(directory / f"{manifest['hashed_library']}"), "-lm"]
-        subprocess.run(cmd, check=True, capture_output=True, text=True)
+        exe = callgrind.compile_driver(directory, C_LOOP, Path(tmp) / "c_loop", defines=("-D_POSIX_C_SOURCE=199309L",))
         stdin = _c_loop_input(work)
         out = {}
         for family in FILTERS:
@@ -327,26 +320,12 @@ def _instructions_per_step(exe: Path, family: str, part: str, stdin: str, tmp: P
     the same difference of each function's exclusive count (``callgrind_annotate``), per call."""
     def count(steps: int) -> tuple[int, dict]:
         out = tmp / f"callgrind.{steps}.out"
-        proc = subprocess.run(["valgrind", "--tool=callgrind", f"--callgrind-out-file={out}",
-                               str(exe), family, str(steps), part], input=stdin, capture_output=True, text=True,
-                              check=True)
-        if int(proc.stdout.split()[1]):
+        total, stdout = callgrind.run([str(exe), family, str(steps), part], stdin, out)
+        if int(stdout.split()[1]):
             raise RuntimeError(f"c_loop: {family} {part} returned a failure code")
-        return int(re.search(r"Collected : (\d+)", proc.stderr).group(1)), _exclusive_counts(out)
+        return total, callgrind.function_counts(out) if shutil.which("callgrind_annotate") else {}
     (many, by_many), (few, by_few) = count(1100), count(100)
     return (many - few) / 1000, {name: (n - by_few.get(name, 0)) / 1000 for name, n in by_many.items()}
-
-
-def _exclusive_counts(callgrind_out: Path) -> dict[str, int]:
-    """Exclusive instruction count of each function in a callgrind output file (callgrind_annotate)."""
-    if not shutil.which("callgrind_annotate"):
-        return {}
-    text = subprocess.run(["callgrind_annotate", "--inclusive=no", "--threshold=100", str(callgrind_out)],
-                          capture_output=True, text=True).stdout
-    counts = {}
-    for number, name in re.findall(r"^\s*([\d,]+) \([^)]*\)\s+\S*?:(\w+)", text, re.M):
-        counts[name] = counts.get(name, 0) + int(number.replace(",", ""))
-    return counts
 
 
 def time_filterpy(model, family: str, work: Workload, steps: int) -> float | None:

@@ -16,17 +16,14 @@ sample without start-up. For ``run`` the kernel's own share (callgrind's inclusi
 """
 from __future__ import annotations
 
-import json
-import re
 import shutil
-import subprocess
 import tempfile
 from pathlib import Path
 
 import numpy as np
 
-from symkf.codegen.build import compiler
 from symkf.models import marg_ekf
+from symkf.scenarios import callgrind
 from . import ekf
 
 PARTS = ("predict", "update", "step", "run")
@@ -79,14 +76,8 @@ def count_instructions(directory: Path, recording) -> dict:
     """{part: instructions per sample} and ``run_kernel`` (the run kernel's share inside the run)."""
     if shutil.which("valgrind") is None:
         return {}
-    manifest = json.loads((directory / "manifest.json").read_text())
     with tempfile.TemporaryDirectory() as tmp:
-        exe = Path(tmp) / "mekf_driver"
-        (Path(tmp) / "driver.c").write_text(C_DRIVER)
-        subprocess.run(compiler().split() + ["-std=c99", *manifest["optimization"].split(), f"-I{directory}",
-                                             "-o", str(exe), str(Path(tmp) / "driver.c"),
-                                             str(directory / manifest["hashed_library"]), "-lm"],
-                       check=True, capture_output=True, text=True)
+        exe = callgrind.compile_driver(directory, C_DRIVER, Path(tmp) / "mekf_driver")
         data = _driver_input(recording, max(SAMPLES))
         out = {}
         for part in PARTS:
@@ -115,16 +106,7 @@ def _driver_input(recording, count: int) -> bytes:
 def _callgrind(exe: Path, part: str, n: int, data: bytes, tmp: Path) -> tuple[int, int]:
     """(all instructions, inclusive instructions of the run kernel) of one driver run."""
     out = tmp / f"cg.{part}.{n}"
-    proc = subprocess.run(["valgrind", "--tool=callgrind", f"--callgrind-out-file={out}", str(exe), part, str(n)],
-                          input=data, capture_output=True, check=True)
-    if int(proc.stdout.split()[0]) not in (0, 6):
-        raise RuntimeError(f"mekf driver: {part} returned code {proc.stdout.decode().strip()}")
-    total = int(re.search(rb"Collected : (\d+)", proc.stderr).group(1))
-    annotated = subprocess.run(["callgrind_annotate", "--inclusive=yes", str(out)], capture_output=True,
-                               text=True).stdout
-    kernel = 0
-    for line in annotated.splitlines():
-        match = re.match(r"\s*([\d,]+)\s.*\bmarg_ekf_k_mekf_run_marg\s", line + " ")
-        if match:
-            kernel = max(kernel, int(match.group(1).replace(",", "")))
-    return total, kernel
+    total, stdout = callgrind.run([str(exe), part, str(n)], data, out)
+    if int(stdout.split()[0]) not in (0, 6):
+        raise RuntimeError(f"mekf driver: {part} returned code {stdout.decode().strip()}")
+    return total, callgrind.function_counts(out, inclusive=True, threshold=None).get("marg_ekf_k_mekf_run_marg", 0)
