@@ -586,16 +586,22 @@ def _call_kernel(model: str, kernel: Kernel, outputs: list[str], replace: dict[s
     return lines
 
 
-def _eval(model: str, kernel: Kernel, kernels: dict[str, Kernel]) -> str:
+def _eval(model: str, kernel: Kernel, kernels: dict[str, Kernel], into: bool = False) -> str:
     """``<model>_<kernel>_eval``: the kernel on inputs already checked. A fused step calls its
     predict, returns predict's code if that failed, then calls its update at t + dt on the
-    predicted x and P (the step Function's composition, compose_step, without its copies)."""
+    predicted x and P (the step Function's composition, compose_step, without its copies).
+
+    ``into``: ``<model>_<kernel>_eval_into``, for the run loops: the outputs are written straight
+    into the ``*_out`` arrays (no copy through temporaries), which must not overlap the inputs;
+    on an error code their contents are unspecified (the loop restores the state)."""
     called = [kernels[name] for name in kernel.parts] or [kernel]
     sizes = [max([getattr(k.function, size)() for k in called] + [1]) for size in ("sz_arg", "sz_res", "sz_iw", "sz_w")]
-    lines = [f"static int {model}_{kernel.name}_eval({', '.join(_param_list(kernel))}) {{",
+    suffix = "_eval_into" if into else "_eval"
+    lines = [f"static int {model}_{kernel.name}{suffix}({', '.join(_param_list(kernel))}) {{",
              f"  const casadi_real *arg[{sizes[0]}];", f"  casadi_real *res[{sizes[1]}];",
              f"  int iw[{sizes[2]}];", f"  casadi_real w[{sizes[3]}];", "  casadi_real status = 0;"]
-    lines += [f"  casadi_real tmp{i}[{max(a.size, 1)}];" for i, a in enumerate(kernel.outputs[:-1])]
+    lines += [f"  casadi_real tmp{i}[{max(a.size, 1)}];" for i, a in enumerate(kernel.outputs[:-1])
+              if not (into and a.size)]
     lines.append("  int i;")
     replace = {}
     if kernel.parts:
@@ -606,13 +612,14 @@ def _eval(model: str, kernel: Kernel, kernels: dict[str, Kernel]) -> str:
         lines += ["  if (status != 0) return (int) status;", "  t_next = t + dt;"]
         replace = {"t": "&t_next", "x": "predicted_x", "P": "predicted_P"}      # as compose_step
     last = called[-1]
-    lines += _call_kernel(model, last, [f"tmp{i}" for i in range(len(kernel.outputs) - 1)], replace)
+    written = [f"{a.name}_out" if into and a.size else f"tmp{i}" for i, a in enumerate(kernel.outputs[:-1])]
+    lines += _call_kernel(model, last, written, replace)
     lines.append("  if (status != 0 && status != SYMKF_GATED) return (int) status;   /* gated: written, reported */")
-    for i, a in enumerate(kernel.outputs[:-1]):
+    for where, a in zip(written, kernel.outputs[:-1]):
         if a.size:
-            lines.append(f"  if (!symkf_finite(tmp{i}, {a.size})) return SYMKF_ERR_NONFINITE;")
+            lines.append(f"  if (!symkf_finite({where}, {a.size})) return SYMKF_ERR_NONFINITE;")
     for i, a in enumerate(kernel.outputs[:-1]):
-        if a.size:
+        if a.size and not into:
             lines.append(f"  for (i = 0; i < {a.size}; ++i) {a.name}_out[i] = tmp{i}[i];")
     lines += ["  (void)i;", "  return (int) status;", "}", ""]
     return "\n".join(lines)
@@ -687,17 +694,22 @@ def _run_address(a: Arg, kernel: Kernel) -> str:
     return f"&{a.name}" if passing(a, kernel) == "value" else a.name
 
 
-def _run_loop(model: str, kernel: Kernel) -> str:
+def _run_loop(model: str, kernel: Kernel, kernels: dict[str, Kernel]) -> str:
     """``<kernel>_run``: the filter's time loop; a failed step keeps the state and records its code.
 
     The inputs that do not change along the run (parameters, noise, the initial state) are checked
     once, the per-step ones (t, dt, z, ...) at each step: a state a step returns is finite (checked
-    on output) or the state it was given. The codes are those of step-by-step calls."""
+    on output) or the state it was given. The codes are those of step-by-step calls. Each step
+    writes its state straight into the history (``_eval_into``), read back as the next step's
+    input; a failed step's row is the state it was given. Once a step has succeeded, the loop
+    calls the kernel's ``trusted`` partner, if it has one (:class:`~symkf.codegen.spec.Kernel`)."""
     outputs = {a.name: a for a in kernel.outputs}
     sanitised = _sanitised_z(kernel)
+    trusted = kernels[kernel.trusted] if kernel.trusted else None
     lines = [f"int {model}_{kernel.name}_run({', '.join(_run_params(kernel))}) {{"]
-    for name in kernel.carried:
-        lines.append(f"  casadi_real {name}[{outputs[name].size}];")
+    for name in kernel.carried:     # a copy: the caller's x0 may be a row of its own x_hist
+        lines.append(f"  casadi_real {name}_first[{max(outputs[name].size, 1)}];")
+        lines.append(f"  const casadi_real *{name} = {name}_first;")
     for a in kernel.outputs[:-1]:
         if a.name not in kernel.carried and a.size:
             lines.append(f"  casadi_real {a.name}_scratch[{a.size}];")
@@ -707,12 +719,15 @@ def _run_loop(model: str, kernel: Kernel) -> str:
     per_step = [a.name for a in kernel.inputs if a.name in kernel.per_step]
     fixed_terms = _finite_terms(kernel, fixed, lambda a: _run_address(a, kernel)) or ["1"]
     step_terms = _finite_terms(kernel, per_step, lambda a: _run_address(a, kernel)) or ["1"]
-    lines += ["  int k, i, code, first_error = SYMKF_OK;",
+    lines += ["  int k, i, code, own = 0, first_error = SYMKF_OK;",
               "  if (n_steps < 0) return SYMKF_ERR_ARGS;",
               f"  const int fixed_finite = {' && '.join(fixed_terms)};"]
     for name in kernel.carried:
-        lines.append(f"  for (i = 0; i < {outputs[name].size}; ++i) {name}[i] = {name}0[i];")
+        lines.append(f"  for (i = 0; i < {outputs[name].size}; ++i) {name}_first[i] = {name}0[i];")
     lines.append("  for (k = 0; k < n_steps; ++k) {")
+    for name in kernel.carried:
+        size = outputs[name].size
+        lines.append(f"    casadi_real *{name}_at = {name}_hist + (long) k * {size};")
     lines.append("    code = SYMKF_ERR_NONFINITE;")
     lines.append(f"    if (fixed_finite && {' && '.join(step_terms)}) {{")
 
@@ -721,8 +736,10 @@ def _run_loop(model: str, kernel: Kernel) -> str:
             return _z_used(kernel)
         return a.name if a.name in kernel.carried else _step_argument(a, kernel)
     call = [argument(a) for a in kernel.inputs if passing(a, kernel) != "omit"]
-    call += [a.name if a.name in kernel.carried else f"{a.name}_scratch" for a in kernel.outputs[:-1] if a.size]
-    call_line = f"{model}_{kernel.name}_eval({', '.join(call)});"
+    call += [f"{a.name}_at" if a.name in kernel.carried else f"{a.name}_scratch" for a in kernel.outputs[:-1] if a.size]
+    call_line = f"{model}_{kernel.name}_eval_into({', '.join(call)});"
+    if trusted is not None:
+        call_line = f"own ? {model}_{trusted.name}_eval_into({', '.join(call)}) : {call_line}"
     if sanitised:
         size = next(a.size for a in kernel.inputs if a.name == "z")
         mask = next(a for a in kernel.inputs if a.name == "mask")
@@ -734,11 +751,15 @@ def _run_loop(model: str, kernel: Kernel) -> str:
         lines.append(f"      code = {call_line}")
     lines.append("    }")
     lines.append("    status_hist[k] = code;")
-    lines.append("    if (code != SYMKF_OK && code != SYMKF_GATED && first_error == SYMKF_OK) first_error = code;")
+    lines.append("    if (code == SYMKF_OK || code == SYMKF_GATED) {")
+    lines += [f"      {name} = {name}_at;" for name in kernel.carried]
+    lines.append("      own = 1;")
+    lines.append("    } else {                     /* the state it was given */")
     for name in kernel.carried:
-        size = outputs[name].size
-        lines.append(f"    for (i = 0; i < {size}; ++i) {name}_hist[(long) k * {size} + i] = {name}[i];")
-    lines += ["  }", "  return first_error;", "}", ""]
+        lines.append(f"      for (i = 0; i < {outputs[name].size}; ++i) {name}_at[i] = {name}[i];")
+    lines.append("      if (first_error == SYMKF_OK) first_error = code;")
+    lines.append("    }")
+    lines += ["  }", "  (void)own;", "  return first_error;", "}", ""]
     return "\n".join(lines)
 
 
@@ -749,11 +770,13 @@ def api_unit(bundle: Bundle) -> str:
     prototypes = [f"SYMKF_INTERNAL int {raw_name(model, k)}(const casadi_real **arg, casadi_real **res, int *iw, "
                   "casadi_real *w, int mem);" for k in bundle.kernels]
     by_name = {k.name: k for k in bundle.kernels}
+    trusted = {k.trusted for k in bundle.kernels if k.trusted}
     functions = [FINITE_HELPER]
     for kernel in bundle.kernels:
         functions.append(_wrapper(model, kernel, by_name))
-        if kernel.runnable:
-            functions.append(_run_loop(model, kernel))
+        if kernel.runnable or kernel.name in trusted:
+            functions.append(_eval(model, kernel, by_name, into=True))
+    functions += [_run_loop(model, kernel, by_name) for kernel in bundle.kernels if kernel.runnable]
     parts = [f"/* {GENERATED_NOTICE.format(model=model)}",
              f" * CasADi {ca.__version__}. */",
              "#include <math.h>",

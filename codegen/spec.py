@@ -56,6 +56,10 @@ class Kernel:
         per_step: names of inputs that change every step of a run (e.g. ``t``, ``z``).
         parts: for a fused step (``compose_step``), the names of its predict and update kernels:
             the C API calls those two (the step's own Function is their composition, for the VM).
+        trusted: for a runnable kernel, the name of a kernel with the same arguments that the C run
+            loop iterates instead once the carried state is the loop's own (a step succeeded): it
+            leaves out the checks of x and P (and of fixed inputs) that such a state and the inputs
+            a successful step already passed cannot fail (e.g. |q| = 1, R diagonal), or "" (none).
     """
 
     name: str
@@ -66,6 +70,7 @@ class Kernel:
     carried: tuple[str, ...] = ()
     per_step: tuple[str, ...] = ()
     parts: tuple[str, ...] = ()
+    trusted: str = ""
 
     def __post_init__(self) -> None:
         f = self.function

@@ -68,7 +68,7 @@ step's 3k operations) on every sample.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import casadi as ca
 import numpy as np
@@ -494,11 +494,12 @@ def error_process_noise(model: Model, mf: ManifoldFunctions, symbols: Symbols, Q
     return G @ Q @ G.T * dt
 
 
-def predict_status(mf: ManifoldFunctions, symbols: Symbols, ok, in_domain=1):
-    """DOMAIN for a non-unit quaternion, dt <= 0 with held noise or not ``in_domain`` (a sigma point
-    outside the chart), else NOT_PD unless ok (inputs are finite: see "Input checks" above)."""
+def predict_status(mf: ManifoldFunctions, symbols: Symbols, ok, in_domain=1, unit: bool = True):
+    """DOMAIN for a non-unit quaternion (unless ``unit`` is False: not tested), dt <= 0 with held
+    noise or not ``in_domain`` (a sigma point outside the chart), else NOT_PD unless ok (inputs
+    are finite: see "Input checks" above)."""
     s = symbols.sym
-    domain = mf.chart.unit_norm(s["x"]) * ((s["dt"] > 0) if mf.options.noise == "held" else 1) * in_domain
+    domain = (mf.chart.unit_norm(s["x"]) if unit else 1) * ((s["dt"] > 0) if mf.options.noise == "held" else 1) * in_domain
     return linalg.select(domain, linalg.select(ok, 0, STATUS_NOT_PD), STATUS_DOMAIN)
 
 
@@ -564,12 +565,14 @@ def update_outputs(chart: Chart, update, x_old, P_old, msym, m: MeasurementInput
 
 
 # ---------------------------------------------------------------------- MEKF
-def mekf_update_expr(mf: ManifoldFunctions, ms: ManifoldSymbols, name: str, msym: dict, wrap, state=None):
+def mekf_update_expr(mf: ManifoldFunctions, ms: ManifoldSymbols, name: str, msym: dict, wrap, state=None,
+                     trusted: bool = False):
     """The MEKF update of x̂, P at t (the kernel's inputs), or of ``state`` = (t, x, P) of a fused
     step: a predicted P, exactly symmetric, whose PSD and finiteness need no check of their own
     (checked in the step's input; a result that overflows is refused by the backends' output
     checks; if the prediction failed, the step's outputs are its inputs and y, S are not read).
-    Batch or sequential (:class:`ManifoldOptions`)."""
+    Batch or sequential (:class:`ManifoldOptions`); ``trusted``: R's diagonal is not tested (a run's
+    trusted kernel, :func:`mekf_run_kernels`)."""
     s = ms.base.sym
     t, x, P = state or (s["t"], s["x"], ms.sym["P"])
     m = measurement_input(mf.model, ms, name, msym)
@@ -582,7 +585,7 @@ def mekf_update_expr(mf: ManifoldFunctions, ms: ManifoldSymbols, name: str, msym
         r = [msym["R"][i, i] * m.mask[i] * m.mask[i] + (1 - m.mask[i]) for i in range(H.shape[0])]
         S = linalg.symmetric(len(r), lambda i, j: HPH[i, j] + (r[i] if i == j else 0))
         correction, P_new, nis, ok = sequential_update(H, P, y, r, symmetric=state is not None)
-        m.valid = diagonal_flag(msym["R"])
+        m.valid = 1 if trusted else diagonal_flag(msym["R"])
     else:
         R = masked_noise(mf.measurement_noise(name, msym["R"], t, x, s["u"], s["p"], msym["q"]), m.mask)
         S = linalg.symmetric(R.shape[0], lambda i, j: HPH[i, j] + linalg.symmetric_part(R, i, j))
@@ -661,12 +664,35 @@ def mekf_kernels(model: Model, symbols: Symbols, fns: ModelFunctions) -> Family:
             "reset x = x (+) K y (masked, gated).", symbols, msym, marg, UPDATE_INPUTS,
             update_outputs(mf.chart, upd, s["x"], P, msym, m))
         step = mekf_step_kernel(model, mf, ms, name, predict, update, (x_pred, P_pred))
-        kernels += [update, step, run_kernel(step)]
+        kernels += [update, step, *mekf_run_kernels(model, mf, ms, name, predict, update, step, (x_pred, P_pred))]
     run = {name: f"mekf_run_{name}" for name in model.measurements}
     return Family(kernels, [filter_spec("mekf", "manifold_ekf", kernels, model.measurements, run=run)])
 
 
-def run_kernel(step: Kernel) -> Kernel:
+def mekf_run_kernels(model: Model, mf: ManifoldFunctions, ms: ManifoldSymbols, name: str, predict: Kernel,
+                     update: Kernel, step: Kernel, predicted) -> list[Kernel]:
+    """``mekf_run_<m>`` (:func:`run_kernel`) and its trusted partner ``mekf_run_<m>_trusted``, the
+    kernel the C run loop iterates once a step has succeeded (``Kernel.trusted``): the carried
+    x, P are then the filter's own output and R passed the step's test, so it leaves out
+
+    - |q| = 1 of the input x: a step's x is renormalised (q / |q|, finite: checked on output);
+    - R diagonal (sequential update): R is fixed along a run, and a step that succeeded had it so;
+    - the PSD test of the input P (:func:`linalg.psd_flag`, 0.23k of the kernel's 2.1k operations
+      for n_e = 6): P is F P Fᵀ + Q_d of a P that passed it, then scalar updates with positive
+      pivots, PSD in exact arithmetic; its round-off (~1e-16 relative) is far inside the test's
+      tolerance (:data:`linalg.PSD_TOLERANCE` = 1e-9 on the correlation matrix). This is the one
+      check a run does not repeat that step-by-step calls do: only a P that fails the test after
+      a successful step (none seen) would be coded differently (the step: NOT_PD, the run: the
+      update's own code).
+
+    The same expressions otherwise: x, P and codes bit-identical to the checked kernel's."""
+    run = run_kernel(step)
+    unchecked = mekf_step_kernel(model, mf, ms, name, predict, update, predicted, trusted=True)
+    trusted = run_kernel(unchecked, f"{run.name}_trusted", carried=())
+    return [replace(run, trusted=trusted.name), trusted]
+
+
+def run_kernel(step: Kernel, name: str = "", carried=None) -> Kernel:
     """``mekf_run_<measurement>``: the fused step without its diagnostics y and S, the kernel the C
     run loop iterates (``FilterSpec.run``): a run keeps only x, P and the status of each step, so
     CasADi drops what only y and S need (the S matrix: ~0.25k of the MARG step's ~2.3k operations)
@@ -675,12 +701,15 @@ def run_kernel(step: Kernel) -> Kernel:
     output is not finite (SYMKF_ERR_NONFINITE) and the run does not look at them."""
     f = step.function
     keep = [i for i in range(f.n_out()) if f.name_out(i) in (*step.carried, "status")]
-    function = ca.Function(f.name().replace("_k_mekf_step_", "_k_mekf_run_"), f.sx_in(),
+    name = name or step.name.replace("mekf_step_", "mekf_run_")
+    function = ca.Function(f"{f.name().split('_k_mekf_step_')[0]}_k_{name}", f.sx_in(),
                            [f.call(f.sx_in())[i] for i in keep], f.name_in(), [f.name_out(i) for i in keep],
                            FUNCTION_OPTIONS)
-    return Kernel(step.name.replace("mekf_step_", "mekf_run_"), function,
-                  f"{step.doc} Without the diagnostics y, S: the step the run loop iterates.", step.inputs,
-                  tuple(step.outputs[i] for i in keep), step.carried, step.per_step)
+    what = "the step the run loop iterates" if carried is None else \
+        "the step the run loop iterates once a step has succeeded (no test of |q|, P PSD or R diagonal)"
+    return Kernel(name, function, f"{step.doc} Without the diagnostics y, S: {what}.", step.inputs,
+                  tuple(step.outputs[i] for i in keep), step.carried if carried is None else tuple(carried),
+                  step.per_step)
 
 
 PREDICT_INPUTS = ["t", "dt", "x", "P", "u", "p", "Q"]
@@ -695,17 +724,19 @@ def mekf_predict_expr(model: Model, mf: ManifoldFunctions, ms: ManifoldSymbols):
 
 
 def mekf_step_kernel(model: Model, mf: ManifoldFunctions, ms: ManifoldSymbols, name: str, predict: Kernel,
-                     update: Kernel, predicted) -> Kernel:
+                     update: Kernel, predicted, trusted: bool = False) -> Kernel:
     """Predict then update at t + dt as ONE expression (same results and codes as
     ``kernels.compose_step`` of the two kernels): the inputs are checked once (|q| = 1, P PSD; their
     finiteness by the callers), the predicted P needs no PSD check of its own (F P Fᵀ + Q_d of a PSD
     P), the update works on the predicted x, P directly, and x, P are selected only by the gate (a
-    failed step's outputs are not written: :func:`update_outputs`)."""
+    failed step's outputs are not written: :func:`update_outputs`). ``trusted``: without the tests
+    of |q| = 1, P PSD and R diagonal (:func:`mekf_run_kernels`)."""
     s, P = ms.base.sym, ms.sym["P"]
     msym, marg = ms.measurement(name)
-    status_pred = predict_status(mf, ms.base, linalg.psd_flag(P))
+    status_pred = predict_status(mf, ms.base, 1 if trusted else linalg.psd_flag(P), unit=not trusted)
     x1, P1 = predicted          # if the prediction failed, the outputs below are the inputs
-    upd, m = mekf_update_expr(mf, ms, name, msym, model.measurements[name].wrap, state=(s["t"] + s["dt"], x1, P1))
+    upd, m = mekf_update_expr(mf, ms, name, msym, model.measurements[name].wrap, state=(s["t"] + s["dt"], x1, P1),
+                              trusted=trusted)
     outputs = dict(update_outputs(mf.chart, upd, x1, P1, msym, m))
     failed = status_pred != 0
     outputs["status"] = linalg.select(failed, status_pred, outputs["status"])   # x, P: not written then

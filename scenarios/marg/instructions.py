@@ -8,11 +8,13 @@ samples to one part of the filter's C API:
 - ``update``: ``marg_ekf_mekf_update_marg`` per sample (the same);
 - ``step``: ``marg_ekf_mekf_step_marg``, predict + update in one call;
 - ``run``: ``marg_ekf_mekf_run_marg_run`` over the samples (the loop in C; it iterates the step
-  without the diagnostics y, S: ``FilterSpec.run``).
+  without the diagnostics y, S: ``FilterSpec.run``, and after the first successful step that
+  step without the checks its own state cannot fail: ``Kernel.trusted``).
 
 Each part is counted over 3000 and over 1000 samples; the difference / 2000 is its cost per
-sample without start-up. For ``run`` the kernel's own share (callgrind's inclusive count of
-``marg_ekf_k_mekf_run_marg``) is reported too: the rest is the wrapper's checks and copies.
+sample without start-up. For ``run`` the kernels' own share (callgrind's inclusive counts of
+``marg_ekf_k_mekf_run_marg`` and of ``..._trusted``, which the loop iterates once a step has
+succeeded) is reported too: the rest is the loop's checks and copies.
 """
 from __future__ import annotations
 
@@ -27,6 +29,8 @@ from symkf.scenarios import callgrind
 from . import ekf
 
 PARTS = ("predict", "update", "step", "run")
+#: The kernels a run iterates: the checked one until a step succeeds, then its trusted partner.
+RUN_KERNELS = ("mekf_run_marg", "mekf_run_marg_trusted")
 SAMPLES = (1000, 3000)
 
 C_DRIVER = r"""
@@ -109,4 +113,5 @@ def _callgrind(exe: Path, part: str, n: int, data: bytes, tmp: Path) -> tuple[in
     total, stdout = callgrind.run([str(exe), part, str(n)], data, out)
     if int(stdout.split()[0]) not in (0, 6):
         raise RuntimeError(f"mekf driver: {part} returned code {stdout.decode().strip()}")
-    return total, callgrind.function_counts(out, inclusive=True, threshold=None).get("marg_ekf_k_mekf_run_marg", 0)
+    counts = callgrind.function_counts(out, inclusive=True, threshold=None)
+    return total, sum(counts.get(f"marg_ekf_k_{name}", 0) for name in RUN_KERNELS)
