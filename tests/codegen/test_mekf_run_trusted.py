@@ -1,0 +1,129 @@
+"""The MEKF's compiled run iterates ``mekf_run_<m>`` until a step succeeds, then its trusted
+partner ``mekf_run_<m>_trusted`` (no test of |q| = 1, P PSD or R diagonal on the loop's own
+state: ``manifold.mekf_run_kernels``). Its codes and histories must be exactly those of the
+checked kernel called one step at a time, refused steps and refused runs included."""
+import numpy as np
+import pytest
+
+from symkf.codegen.spec import STATUS_ARGS, STATUS_DOMAIN, STATUS_GATED, STATUS_NONFINITE, STATUS_NOT_PD
+
+STEPS = 600
+KERNEL = "mekf_run_marg"
+
+
+@pytest.fixture(scope="module")
+def compiled():
+    from symkf.runtime import load
+    return load("marg_ekf", backend="compiled")
+
+
+@pytest.fixture(scope="module")
+def recording():
+    """2.1 s of a synthetic MARG sensor: at rest (the gyro-at-rest rows used), then turning, with
+    a magnetic disturbance (the heading masked): every kind of masked component occurs."""
+    from symkf.scenarios.marg.data import Recording
+    rng = np.random.default_rng(7)
+    time = np.arange(STEPS) / 285.714
+    gyro = rng.normal(0.0, 2e-3, (STEPS, 3)) + np.where(time[:, None] > 1.6, [0.3, -0.2, 0.8], 0.0)
+    acc = rng.normal([0.0, 0.0, 9.81], 0.05, (STEPS, 3))
+    mag = rng.normal([0.0, 25.0, -43.0], 0.3, (STEPS, 3))
+    mag[520:560] *= 1.2
+    return Recording("synthetic", time, gyro, acc, mag)
+
+
+def inputs(compiled, recording, bad: str) -> dict[str, np.ndarray]:
+    """Every input of ``mekf_run_marg`` (per-step ones with one row per step); ``bad`` spoils one."""
+    from symkf.models import marg_ekf
+    from symkf.scenarios.marg import ekf
+    filt = ekf.make_filter(compiled, recording)
+    mask = ekf.masks(recording)
+    assert 0 < mask[:, 3].sum() < STEPS and 0 < mask[:, 4].sum() < STEPS
+    sigma = [marg_ekf.ACC_DIRECTION_SIGMA] * 3 + [marg_ekf.HEADING_SIGMA] + [marg_ekf.REST_GYRO_SIGMA] * 3
+    values = {"t": recording.time - np.r_[0.0, np.diff(recording.time)], "dt": np.r_[3.5e-3, np.diff(recording.time)],
+              "x": filt.x.copy(), "P": filt.P.copy(), "u": recording.gyro, "p": np.zeros(0),
+              "Q": marg_ekf.process_noise_psd(), "q": recording.mag, "z": ekf.measurements(recording), "mask": mask,
+              "R": np.diag(np.square(sigma)), "gate": np.zeros(7)}
+    values = {name: np.array(v, dtype=float) for name, v in values.items()}
+    if bad == "z":
+        values["z"][[0, 1, 300], 0] = np.nan              # the first two steps refused: trusted from step 2
+    elif bad == "R":
+        values["R"][0, 1] = values["R"][1, 0] = 1e-4      # not diagonal: every step SYMKF_ERR_ARGS
+    elif bad == "P":
+        values["P"][0, 0] = -1e-3                         # not PSD: every step SYMKF_ERR_NOT_PD
+    elif bad == "x":
+        values["x"][:4] *= 1.01                           # |q| != 1: every step SYMKF_ERR_DOMAIN
+    elif bad == "gate":
+        values["gate"][:] = 3.0                           # some steps gated (a success: trusted after)
+    return values
+
+
+def run_in_c(compiled, values):
+    backend = compiled.backend
+    info = backend.kernels[KERNEL]
+    arrays = {name: np.ascontiguousarray(values[name].reshape(STEPS, -1)) if name in info.per_step
+              else np.asfortranarray(values[name].reshape(shape, order="F")) for name, shape in info.inputs}
+    x_hist, P_hist = np.zeros((STEPS, 7)), np.zeros((STEPS, 36))
+    status = np.zeros(STEPS, dtype=np.int32)
+    code = backend.run_function(KERNEL)(STEPS, *[arrays[name].ctypes.data for name, _ in info.inputs],
+                                        x_hist.ctypes.data, P_hist.ctypes.data, status.ctypes.data)
+    return code, status.tolist(), x_hist, P_hist
+
+
+def step_by_step(compiled, kernel: str, values: dict):
+    """The checked (or trusted) kernel through its ``_v`` entry, one call per step, x and P in place."""
+    backend = compiled.backend
+    info = backend.kernels[kernel]
+    buffers = {name: np.zeros(shape, order="F") for name, shape in info.inputs + info.outputs[:-1]}
+    buffers["x"][:, 0], buffers["P"][...] = values["x"], values["P"]
+    call = backend.bind(kernel, buffers)
+    codes, xs, Ps = [], [], []
+    for k in range(STEPS):
+        for name, shape in info.inputs:
+            if name in ("x", "P") or not np.prod(shape):
+                continue
+            value = values[name][k] if name in info.per_step else values[name]
+            buffers[name][...] = np.reshape(value, shape, order="F")
+        codes.append(call())
+        xs.append(buffers["x"][:, 0].copy())
+        Ps.append(buffers["P"].ravel(order="F").copy())
+    return codes, np.array(xs), np.array(Ps)
+
+
+def test_the_run_kernel_names_its_trusted_partner():
+    from symkf.codegen import generate
+    kernels = {k.name: k for k in generate("marg_ekf").kernels}
+    assert kernels[KERNEL].trusted == f"{KERNEL}_trusted"
+    trusted = kernels[f"{KERNEL}_trusted"]
+    assert not trusted.runnable and trusted.inputs == kernels[KERNEL].inputs
+    assert trusted.function.n_instructions() < kernels[KERNEL].function.n_instructions() - 250
+
+
+@pytest.mark.parametrize("bad", ["none", "z", "R", "P", "x", "gate"])
+def test_run_equals_checked_steps_one_by_one(compiled, recording, bad):
+    values = inputs(compiled, recording, bad)
+    code, status, x_hist, P_hist = run_in_c(compiled, values)
+    codes, xs, Ps = step_by_step(compiled, KERNEL, values)
+    assert status == codes
+    assert code == next((c for c in codes if c not in (0, STATUS_GATED)), 0)
+    assert np.array_equal(x_hist, xs) and np.array_equal(P_hist, Ps)          # bit for bit
+    every = {"R": STATUS_ARGS, "P": STATUS_NOT_PD, "x": STATUS_DOMAIN}
+    if bad in every:
+        assert set(codes) == {every[bad]} and np.array_equal(x_hist[-1], values["x"])
+    else:
+        assert codes.count(STATUS_NONFINITE) == (3 if bad == "z" else 0)
+        assert not np.array_equal(x_hist[-1], values["x"])                   # the filter moved
+    if bad == "gate":
+        assert 0 < codes.count(STATUS_GATED) < STEPS
+
+
+def test_the_trusted_kernel_leaves_out_only_the_tests_of_the_loops_own_state(compiled, recording):
+    """Step by step from the same state, the trusted kernel gives the checked kernel's x, P and
+    codes bit for bit; given a state the loop never hands it (P not PSD, R not diagonal), it does
+    not refuse it."""
+    values = inputs(compiled, recording, "none")
+    assert all(np.array_equal(a, b) for a, b in zip(step_by_step(compiled, KERNEL, values)[1:],
+                                                      step_by_step(compiled, f"{KERNEL}_trusted", values)[1:]))
+    codes, _, _ = step_by_step(compiled, f"{KERNEL}_trusted", inputs(compiled, recording, "R"))
+    assert STATUS_ARGS not in codes                  # the checked kernel: ARGS at every step
+    codes, _, _ = step_by_step(compiled, f"{KERNEL}_trusted", inputs(compiled, recording, "P"))
+    assert codes[0] == 0                             # the checked kernel: NOT_PD (the update's own pivots may refuse later)
