@@ -636,14 +636,16 @@ def _call_list(kernel: Kernel, value) -> list[str]:
     return args + [f"{a.name}_out" for a in kernel.outputs[:-1] if a.size]
 
 
-def _wrapper(model: str, kernel: Kernel, kernels: dict[str, Kernel]) -> str:
-    """The public function (inputs checked, then ``_eval``) and its binding entry ``_v``."""
+def _wrapper(model: str, kernel: Kernel) -> str:
+    """The public function (inputs checked, then ``_eval`` of the kernel or of the first of its
+    variants whose zero entries are all 0) and its binding entry ``_v``."""
     sanitised = _sanitised_z(kernel)
-    lines = [_eval(model, kernel, kernels),
-             f"int {model}_{kernel.name}({', '.join(_param_list(kernel))}) {{", *_checks(kernel),
-             f"  return {model}_{kernel.name}_eval("
-             + ", ".join(_call_list(kernel, lambda a: _z_used(kernel) if sanitised and a.name == "z" else a.name)) + ");",
-             "}", ""]
+    arguments = "(" + ", ".join(_call_list(kernel, lambda a: _z_used(kernel) if sanitised and a.name == "z" else a.name)) + ");"
+    lines = [f"int {model}_{kernel.name}({', '.join(_param_list(kernel))}) {{", *_checks(kernel)]
+    for name, conditions in kernel.variants:
+        zero = [_zero_test(kernel, input_name, entries, value=True) for input_name, entries in conditions if entries]
+        lines.append(f"  if ({' && '.join(zero) or '1'}) return {model}_{name}_eval{arguments}")
+    lines += [f"  return {model}_{kernel.name}_eval{arguments}", "}", ""]
     call = []
     for i, a in enumerate(kernel.inputs):
         how = passing(a, kernel)
@@ -722,6 +724,9 @@ def _run_loop(model: str, kernel: Kernel, kernels: dict[str, Kernel]) -> str:
     lines += ["  int k, i, code, own = 0, first_error = SYMKF_OK;",
               "  if (n_steps < 0) return SYMKF_ERR_ARGS;",
               f"  const int fixed_finite = {' && '.join(fixed_terms)};"]
+    for v, (_, conditions) in enumerate(trusted.variants if trusted else ()):     # conditions on fixed inputs, once
+        zero = [_zero_test(kernel, name, entries) for name, entries in conditions if name not in kernel.per_step and entries]
+        lines.append(f"  const int variant{v} = {' && '.join(zero) or '1'};")
     for name in kernel.carried:
         lines.append(f"  for (i = 0; i < {outputs[name].size}; ++i) {name}_first[i] = {name}0[i];")
     lines.append("  for (k = 0; k < n_steps; ++k) {")
@@ -737,18 +742,18 @@ def _run_loop(model: str, kernel: Kernel, kernels: dict[str, Kernel]) -> str:
         return a.name if a.name in kernel.carried else _step_argument(a, kernel)
     call = [argument(a) for a in kernel.inputs if passing(a, kernel) != "omit"]
     call += [f"{a.name}_at" if a.name in kernel.carried else f"{a.name}_scratch" for a in kernel.outputs[:-1] if a.size]
-    call_line = f"{model}_{kernel.name}_eval_into({', '.join(call)});"
-    if trusted is not None:
-        call_line = f"own ? {model}_{trusted.name}_eval_into({', '.join(call)}) : {call_line}"
+    calls = _run_calls(model, kernel, trusted, f"({', '.join(call)});")
     if sanitised:
         size = next(a.size for a in kernel.inputs if a.name == "z")
         mask = next(a for a in kernel.inputs if a.name == "mask")
         z_at = "z[k]" if size == 1 else "z[(long) k * {0} + i]".format(size)
         mask_at = "mask[k]" if size == 1 else "mask[(long) k * {0} + i]".format(mask.size)
         lines.append(f"      for (i = 0; i < {size}; ++i) z_used[i] = {mask_at} > (casadi_real) 0.5 ? {z_at} : (casadi_real) 0;")
-        lines.append(f"      if (symkf_finite(z_used, {size})) code = {call_line}")
+        lines.append(f"      if (symkf_finite(z_used, {size})) {{")
+        lines += [f"  {line}" for line in calls]
+        lines.append("      }")
     else:
-        lines.append(f"      code = {call_line}")
+        lines += calls
     lines.append("    }")
     lines.append("    status_hist[k] = code;")
     lines.append("    if (code == SYMKF_OK || code == SYMKF_GATED) {")
@@ -763,6 +768,33 @@ def _run_loop(model: str, kernel: Kernel, kernels: dict[str, Kernel]) -> str:
     return "\n".join(lines)
 
 
+def _run_calls(model: str, kernel: Kernel, trusted: Kernel | None, arguments: str) -> list[str]:
+    """The run loop's call of step k: the kernel until a step has succeeded, then its trusted
+    partner or the first of the partner's variants whose zero entries are all 0 at step k."""
+    checked = f"code = {model}_{kernel.name}_eval_into{arguments}"
+    if trusted is None:
+        return [f"      {checked}"]
+    lines = [f"      if (!own) {checked}"]
+    for v, (name, conditions) in enumerate(trusted.variants):
+        zero = [_zero_test(kernel, input_name, entries, "k") for input_name, entries in conditions
+                if input_name in kernel.per_step and entries]
+        lines.append(f"      else if ({' && '.join([f'variant{v}'] + zero)}) code = {model}_{name}_eval_into{arguments}")
+    lines.append(f"      else code = {model}_{trusted.name}_eval_into{arguments}")
+    return lines
+
+
+def _zero_test(kernel: Kernel, name: str, entries, step: str | None = None, value: bool = False) -> str:
+    """C test that the given entries of input ``name`` are exactly 0 (at step ``step`` of a run
+    for a per-step input; ``value``: as the public step function takes it)."""
+    a = next(a for a in kernel.inputs if a.name == name)
+    if step is not None:
+        at = [f"{name}[{step}]" if a.size == 1 else f"{name}[(long) {step} * {a.size} + {e}]" for e in entries]
+    else:
+        by_value = passing(a, kernel, run=not value) == "value"
+        at = [name if by_value else f"{name}[{e}]" for e in entries]
+    return " && ".join(f"{where} == 0" for where in at) or "1"
+
+
 def api_unit(bundle: Bundle) -> str:
     """``<model>_api.c``: the documented API (wrappers, binding entries, run loops) over the
     kernels' entry points in their own units. The content hash is not in it (:func:`hash_unit`)."""
@@ -771,11 +803,13 @@ def api_unit(bundle: Bundle) -> str:
                   "casadi_real *w, int mem);" for k in bundle.kernels]
     by_name = {k.name: k for k in bundle.kernels}
     trusted = {k.trusted for k in bundle.kernels if k.trusted}
+    trusted |= {v for k in bundle.kernels if k.name in trusted for v, _ in k.variants}
     functions = [FINITE_HELPER]
     for kernel in bundle.kernels:
-        functions.append(_wrapper(model, kernel, by_name))
+        functions.append(_eval(model, kernel, by_name))
         if kernel.runnable or kernel.name in trusted:
             functions.append(_eval(model, kernel, by_name, into=True))
+    functions += [_wrapper(model, kernel) for kernel in bundle.kernels]
     functions += [_run_loop(model, kernel, by_name) for kernel in bundle.kernels if kernel.runnable]
     parts = [f"/* {GENERATED_NOTICE.format(model=model)}",
              f" * CasADi {ca.__version__}. */",

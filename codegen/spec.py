@@ -60,6 +60,12 @@ class Kernel:
             loop iterates instead once the carried state is the loop's own (a step succeeded): it
             leaves out the checks of x and P (and of fixed inputs) that such a state and the inputs
             a successful step already passed cannot fail (e.g. |q| = 1, R diagonal), or "" (none).
+        variants: specialisations of this kernel that its C wrapper and a run loop call instead
+            when some input entries are exactly 0: ``((kernel name, ((input name, (entry, ...)),
+            ...)), ...)``, entries in column-major order; the first whose entries are all 0 is
+            called (in a run: a fixed input's once per run, a per-step input's at each step). Each
+            is this kernel with those entries replaced by the constant 0, which CasADi folds away
+            (e.g. a masked component's scalar update, a gate that is off): the same outputs.
     """
 
     name: str
@@ -71,6 +77,7 @@ class Kernel:
     per_step: tuple[str, ...] = ()
     parts: tuple[str, ...] = ()
     trusted: str = ""
+    variants: tuple = ()
 
     def __post_init__(self) -> None:
         f = self.function

@@ -71,6 +71,9 @@ def build() -> Model:
     m.filters = ("mekf",)
     # one scalar update per component (R is diagonal): the batch's result to round-off, fewer operations;
     # F = I + A dt + (A dt)²/2 of the error dynamics (A = [[-[ω]×, -I], [0, 0]], derived), not through RK4
-    m.codegen_defaults = {"manifold_update": "sequential", "manifold_transition": "series"}
+    # the run loop's kernels for the mask patterns of BROAD (gate off): all used, heading masked
+    # (magnetic disturbance), gyro-at-rest masked (moving), both: a masked component costs nothing
+    m.codegen_defaults = {"manifold_update": "sequential", "manifold_transition": "series",
+                          "manifold_run_variants": ((), (3,), (4, 5, 6), (3, 4, 5, 6))}
     m.generic_kernels = ()
     return m

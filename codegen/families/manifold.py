@@ -154,7 +154,21 @@ class ManifoldOptions:
         return chosen
 
 
-register_options(*(f"manifold_{key}" for key in ManifoldOptions.CHOICES))
+register_options(*(f"manifold_{key}" for key in ManifoldOptions.CHOICES), "manifold_run_variants")
+
+
+def run_variants(model: Model, config: CodegenConfig, name: str, size: int) -> list[tuple[int, ...]]:
+    """The mask patterns of measurement ``name`` (``size`` mask entries) that get their own run
+    kernel (codegen option ``manifold_run_variants``: a sequence of sets of mask entries, e.g.
+    ``((3,), (4, 5, 6))``; default none), largest first: :func:`mekf_run_kernels`."""
+    patterns = []
+    for pattern in config.get("manifold_run_variants", ()) or ():
+        entries = tuple(sorted({int(i) for i in pattern}))
+        if any(i < 0 or i >= size for i in entries):
+            raise ConfigError(f"model '{model.name}': manifold_run_variants {pattern!r}: measurement '{name}' has "
+                              f"{size} components")
+        patterns.append(entries)
+    return sorted(set(patterns), key=lambda e: (-len(e), e))
 
 
 # ---------------------------------------------------------------------- the chart
@@ -664,7 +678,9 @@ def mekf_kernels(model: Model, symbols: Symbols, fns: ModelFunctions) -> Family:
             "reset x = x (+) K y (masked, gated).", symbols, msym, marg, UPDATE_INPUTS,
             update_outputs(mf.chart, upd, s["x"], P, msym, m))
         step = mekf_step_kernel(model, mf, ms, name, predict, update, (x_pred, P_pred))
-        kernels += [update, step, *mekf_run_kernels(model, mf, ms, name, predict, update, step, (x_pred, P_pred))]
+        run = mekf_run_kernels(model, mf, ms, name, predict, update, step, (x_pred, P_pred))
+        step, step_variants = with_variants(model, mf, name, step, step.name)
+        kernels += [update, step, *run, *step_variants]
     run = {name: f"mekf_run_{name}" for name in model.measurements}
     return Family(kernels, [filter_spec("mekf", "manifold_ekf", kernels, model.measurements, run=run)])
 
@@ -685,11 +701,47 @@ def mekf_run_kernels(model: Model, mf: ManifoldFunctions, ms: ManifoldSymbols, n
       a successful step (none seen) would be coded differently (the step: NOT_PD, the run: the
       update's own code).
 
-    The same expressions otherwise: x, P and codes bit-identical to the checked kernel's."""
+    The same expressions otherwise: x, P and codes bit-identical to the checked kernel's.
+
+    With the codegen option ``manifold_run_variants`` (:func:`run_variants`), the trusted kernel
+    also comes in one variant per listed mask pattern, ``mekf_run_<m>_masked_<i>_<j>...`` (the
+    empty pattern: ``mekf_run_<m>_ungated``): the gate and the listed mask entries replaced by the
+    constant 0, so CasADi removes what they multiply away: the masked components' scalar updates,
+    their h and H rows (the heading's atan2), the gate's test and selects. The loop calls one when
+    the run's gate is off (all 0) and the step's listed mask entries are exactly 0 (``Kernel.variants``).
+    A masked component's scalar update changes nothing (hᵢ = 0: P - 0, δ + 0, NIS + 0; the gain's
+    pivot is 1), so a variant gives the trusted kernel's x, P and codes (up to the sign of a zero)."""
     run = run_kernel(step)
     unchecked = mekf_step_kernel(model, mf, ms, name, predict, update, predicted, trusted=True)
-    trusted = run_kernel(unchecked, f"{run.name}_trusted", carried=())
-    return [replace(run, trusted=trusted.name), trusted]
+    trusted, variants = with_variants(model, mf, name, run_kernel(unchecked, f"{run.name}_trusted", carried=()),
+                                      run.name)
+    return [replace(run, trusted=trusted.name), trusted, *variants]
+
+
+def with_variants(model: Model, mf: ManifoldFunctions, name: str, kernel: Kernel, base: str):
+    """``kernel`` with its ``variants`` (``Kernel.variants``: one per pattern of
+    ``manifold_run_variants``, :func:`masked_variant`) and those variant kernels."""
+    patterns = run_variants(model, mf.fns.config, name, kernel.inputs[kernel.input_index("mask")].size)
+    variants = [masked_variant(kernel, base, entries) for entries in patterns]
+    gate = tuple(range(kernel.inputs[kernel.input_index("gate")].size))
+    conditions = tuple((v.name, (("gate", gate), ("mask", entries))) for v, entries in zip(variants, patterns))
+    return replace(kernel, variants=conditions), variants
+
+
+def masked_variant(kernel: Kernel, base: str, entries: tuple[int, ...]) -> Kernel:
+    """``kernel`` with the gate and the mask entries ``entries`` set to the constant 0: named
+    ``<base>_masked_<i>_<j>...`` (``<base>_ungated`` for no entry)."""
+    f = kernel.function
+    inputs = f.sx_in()
+    gate, mask = inputs[kernel.input_index("gate")], inputs[kernel.input_index("mask")]
+    fixed = [gate[i] for i in range(gate.numel())] + [mask[i] for i in entries]
+    outputs = ca.substitute(f.call(inputs), [ca.vertcat(*fixed)], [ca.DM.zeros(len(fixed))])
+    name = f"{base}_masked_{'_'.join(map(str, entries))}" if entries else f"{base}_ungated"
+    function = ca.Function(f"{f.name().split('_k_')[0]}_k_{name}", inputs, outputs, f.name_in(), f.name_out(),
+                           FUNCTION_OPTIONS)
+    what = f"mask entries {list(entries)} and the gate 0" if entries else "the gate 0 (off)"
+    return Kernel(name, function, f"{kernel.doc} Specialised for {what}: called for it by the wrapper "
+                  f"of {kernel.name} and by the run loop.", kernel.inputs, kernel.outputs, (), kernel.per_step)
 
 
 def run_kernel(step: Kernel, name: str = "", carried=None) -> Kernel:

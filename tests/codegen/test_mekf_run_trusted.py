@@ -1,7 +1,9 @@
 """The MEKF's compiled run iterates ``mekf_run_<m>`` until a step succeeds, then its trusted
 partner ``mekf_run_<m>_trusted`` (no test of |q| = 1, P PSD or R diagonal on the loop's own
-state: ``manifold.mekf_run_kernels``). Its codes and histories must be exactly those of the
-checked kernel called one step at a time, refused steps and refused runs included."""
+state: ``manifold.mekf_run_kernels``) or, for the mask patterns of ``manifold_run_variants``
+with the gate off, a variant of it with those mask entries constant 0 (as the step function
+does with the step's variants). Codes and histories must be exactly those of the checked kernel
+called one step at a time, refused steps and refused runs included."""
 import numpy as np
 import pytest
 
@@ -27,7 +29,8 @@ def recording():
     gyro = rng.normal(0.0, 2e-3, (STEPS, 3)) + np.where(time[:, None] > 1.6, [0.3, -0.2, 0.8], 0.0)
     acc = rng.normal([0.0, 0.0, 9.81], 0.05, (STEPS, 3))
     mag = rng.normal([0.0, 25.0, -43.0], 0.3, (STEPS, 3))
-    mag[520:560] *= 1.2
+    mag[440:450] *= 1.2                               # at rest, heading masked
+    mag[520:560] *= 1.2                               # turning, heading masked
     return Recording("synthetic", time, gyro, acc, mag)
 
 
@@ -37,7 +40,8 @@ def inputs(compiled, recording, bad: str) -> dict[str, np.ndarray]:
     from symkf.scenarios.marg import ekf
     filt = ekf.make_filter(compiled, recording)
     mask = ekf.masks(recording)
-    assert 0 < mask[:, 3].sum() < STEPS and 0 < mask[:, 4].sum() < STEPS
+    patterns = {tuple(np.flatnonzero(row == 0)) for row in mask}
+    assert patterns == {(), (3,), (4, 5, 6), (3, 4, 5, 6)}       # every variant of marg_ekf is called
     sigma = [marg_ekf.ACC_DIRECTION_SIGMA] * 3 + [marg_ekf.HEADING_SIGMA] + [marg_ekf.REST_GYRO_SIGMA] * 3
     values = {"t": recording.time - np.r_[0.0, np.diff(recording.time)], "dt": np.r_[3.5e-3, np.diff(recording.time)],
               "x": filt.x.copy(), "P": filt.P.copy(), "u": recording.gyro, "p": np.zeros(0),
@@ -89,13 +93,26 @@ def step_by_step(compiled, kernel: str, values: dict):
     return codes, np.array(xs), np.array(Ps)
 
 
-def test_the_run_kernel_names_its_trusted_partner():
+@pytest.fixture(scope="module")
+def kernels():
     from symkf.codegen import generate
-    kernels = {k.name: k for k in generate("marg_ekf").kernels}
+    return {k.name: k for k in generate("marg_ekf").kernels}
+
+
+def test_the_run_kernel_names_its_trusted_partner_and_its_variants(kernels):
     assert kernels[KERNEL].trusted == f"{KERNEL}_trusted"
     trusted = kernels[f"{KERNEL}_trusted"]
     assert not trusted.runnable and trusted.inputs == kernels[KERNEL].inputs
     assert trusted.function.n_instructions() < kernels[KERNEL].function.n_instructions() - 250
+    gate = ("gate", tuple(range(7)))
+    expected = [(f"{KERNEL}_masked_3_4_5_6", (gate, ("mask", (3, 4, 5, 6)))),
+                (f"{KERNEL}_masked_4_5_6", (gate, ("mask", (4, 5, 6)))), (f"{KERNEL}_masked_3", (gate, ("mask", (3,)))),
+                (f"{KERNEL}_ungated", (gate, ("mask", ())))]
+    assert list(trusted.variants) == expected
+    assert [name for name, _ in kernels["mekf_step_marg"].variants] == \
+        [name.replace("mekf_run_", "mekf_step_") for name, _ in expected]
+    sizes = [kernels[name].function.n_instructions() for name, _ in expected]
+    assert sizes == sorted(sizes) and sizes[-1] < trusted.function.n_instructions()   # masked work is gone
 
 
 @pytest.mark.parametrize("bad", ["none", "z", "R", "P", "x", "gate"])
@@ -127,3 +144,39 @@ def test_the_trusted_kernel_leaves_out_only_the_tests_of_the_loops_own_state(com
     assert STATUS_ARGS not in codes                  # the checked kernel: ARGS at every step
     codes, _, _ = step_by_step(compiled, f"{KERNEL}_trusted", inputs(compiled, recording, "P"))
     assert codes[0] == 0                             # the checked kernel: NOT_PD (the update's own pivots may refuse later)
+
+
+def test_the_step_function_and_its_variants_equal_the_general_step(compiled, recording, kernels):
+    """The C step ``mekf_step_marg`` (its wrapper calls a variant for a mask pattern of
+    ``manifold_run_variants`` with the gate off) against the general step's CasADi Function
+    evaluated in Python, sample by sample on the same inputs: x, P, y, S and codes equal."""
+    values = inputs(compiled, recording, "none")
+    step = kernels["mekf_step_marg"].function
+    backend = compiled.backend
+    info = backend.kernels["mekf_step_marg"]
+    buffers = {name: np.zeros(shape, order="F") for name, shape in info.inputs + info.outputs[:-1]}
+    call = backend.bind("mekf_step_marg", buffers)
+    x, P = values["x"], values["P"]
+    for k in range(0, STEPS, 7):
+        args = {name: (values[name][k] if name in info.per_step else values[name]) for name, _ in info.inputs}
+        args["x"], args["P"] = x, P
+        args["z"] = np.where(args["mask"] > 0.5, args["z"], 0.0)
+        for name, shape in info.inputs:
+            if np.prod(shape):
+                buffers[name][...] = np.reshape(args[name], shape, order="F")
+        code = call()
+        expected = step.call({name: args[name] for name, _ in info.inputs})
+        assert code == int(expected["status"])
+        for name in ("x", "P", "y", "S"):
+            assert np.array_equal(buffers[name], np.array(expected[name])), (k, name)
+        x, P = buffers["x"][:, 0].copy(), buffers["P"].copy()
+
+
+def test_a_variant_pattern_outside_the_measurement_is_refused():
+    from symkf.codegen import generate
+    from symkf.codegen.spec import ConfigError
+    from symkf.codegen.build import default_config
+    from symkf.models import get_model
+    config = default_config(get_model("marg_ekf")).with_overrides(manifold_run_variants=((7,),))
+    with pytest.raises(ConfigError, match="manifold_run_variants"):
+        generate("marg_ekf", config)
