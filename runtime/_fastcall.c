@@ -199,17 +199,12 @@ static void write_slot(const Slot *slot, PyObject *o, const Input *in) {
   }
 }
 
-static PyObject *step_call(PyObject *callable, PyObject *const *argv, size_t nargsf, PyObject *kwnames) {
-  Step *self = (Step *) callable;
-  Py_ssize_t nargs = PyVectorcall_NARGS(nargsf);
+/* The checks, copies and kernel call of one step (argv: t, dt, then one object per slot): the
+   status code (a new int), or None having written nothing (see the top of this file). */
+static PyObject *step_run(Step *self, PyObject *const *argv) {
   Input inputs[MAX_SLOTS];
   int i, fits = 1, code;
   double t, dt;
-  if (kwnames != NULL || nargs != 2 + self->n_slots) {
-    PyErr_Format(PyExc_TypeError, "Step expects %d positional arguments (t, dt, %d arrays)",
-                 2 + self->n_slots, self->n_slots);
-    return NULL;
-  }
   if (argv[0] == Py_None && self->clock != NULL) t = *self->clock;
   else if (!finite_float(argv[0], &t)) Py_RETURN_NONE;
   if (!finite_float(argv[1], &dt) || !(dt > 0.0)) Py_RETURN_NONE;
@@ -229,6 +224,16 @@ static PyObject *step_call(PyObject *callable, PyObject *const *argv, size_t nar
   if (self->clock != NULL) *self->clock = t + dt;
   ++self->calls;
   return PyLong_FromLong(code);
+}
+
+static PyObject *step_call(PyObject *callable, PyObject *const *argv, size_t nargsf, PyObject *kwnames) {
+  Step *self = (Step *) callable;
+  if (kwnames != NULL || PyVectorcall_NARGS(nargsf) != 2 + self->n_slots) {
+    PyErr_Format(PyExc_TypeError, "Step expects %d positional arguments (t, dt, %d arrays)",
+                 2 + self->n_slots, self->n_slots);
+    return NULL;
+  }
+  return step_run(self, argv);
 }
 
 static void *address(PyObject *o) {
@@ -323,6 +328,206 @@ static PyTypeObject StepType = {
   .tp_call = PyVectorcall_Call,
 };
 
+/* ---- Method: a filter's step method whose plain calls run no Python frame ----
+ *
+ * Set on a filter as its `step` attribute (symkf/runtime/fastcall.py: method()). Called exactly as
+ * the Python method (positional and keyword arguments, by the method's parameter names), it puts
+ * the arguments in its Step's order (t, dt, arrays) and runs the Step. Anything else goes to the
+ * Python method, bound, with the very same arguments: a call the Step declines, a `nan` other than
+ * "raise", a measurement that is not a str with a fast path, a missing required argument, an
+ * unknown or repeated keyword, too many arguments. So this adds no rule either: the Python method
+ * answers every call it does not take, with the Python method's own errors.
+ */
+#define MAX_PARAMS 12
+
+static PyObject *raise_string;   /* "raise", the `nan` policy the fast path implements */
+
+typedef struct {
+  PyObject_HEAD
+  vectorcallfunc vectorcall;
+  PyObject *fallback;        /* the Python method, bound to the filter */
+  PyObject *names;           /* tuple of its parameter names (after self) */
+  int n_params, required;    /* the first `required` parameters have no default */
+  int nan_index;             /* the `nan` parameter (absent or "raise"), -1 if none */
+  int select_index;          /* the measurement's name (absent or None: the default Step), -1 if none */
+  PyObject *steps;           /* dict: measurement -> Step (select_index >= 0), else None */
+  PyObject *default_step;    /* a Step */
+  int n_args;                /* 2 + the Steps' slot count */
+  int arguments[2 + MAX_SLOTS];  /* per Step argument, the parameter that gives it (-1: None) */
+  PyObject *result;          /* returned on success instead of the status code (None: the code) */
+  Py_ssize_t calls;          /* calls it took */
+} Method;
+
+static int parameter(const Method *self, PyObject *name) {
+  Py_ssize_t j;
+  for (j = 0; j < self->n_params; ++j) if (PyTuple_GET_ITEM(self->names, j) == name) return (int) j;
+  for (j = 0; j < self->n_params; ++j)
+    if (PyUnicode_Compare(PyTuple_GET_ITEM(self->names, j), name) == 0) return (int) j;
+  PyErr_Clear();
+  return -1;
+}
+
+/* The Step a call selects (borrowed), or NULL: the Python method decides. */
+static Step *selected(const Method *self, PyObject *const *values) {
+  PyObject *name, *step;
+  if (self->select_index < 0 || values[self->select_index] == NULL || values[self->select_index] == Py_None)
+    return (Step *) self->default_step;
+  name = values[self->select_index];
+  if (!PyUnicode_CheckExact(name)) return NULL;
+  step = PyDict_GetItemWithError(self->steps, name);
+  if (step == NULL) PyErr_Clear();
+  return (Step *) step;
+}
+
+static PyObject *method_call(PyObject *callable, PyObject *const *args, size_t nargsf, PyObject *kwnames) {
+  Method *self = (Method *) callable;
+  Py_ssize_t nargs = PyVectorcall_NARGS(nargsf), nkw = kwnames == NULL ? 0 : PyTuple_GET_SIZE(kwnames), i;
+  PyObject *values[MAX_PARAMS] = {NULL}, *argv[2 + MAX_SLOTS], *nan, *code;
+  Step *step;
+  if (nargs > self->n_params) goto python;
+  for (i = 0; i < nargs; ++i) values[i] = args[i];
+  for (i = 0; i < nkw; ++i) {
+    int j = parameter(self, PyTuple_GET_ITEM(kwnames, i));
+    if (j < 0 || values[j] != NULL) goto python;
+    values[j] = args[nargs + i];
+  }
+  for (i = 0; i < self->required; ++i) if (values[i] == NULL) goto python;
+  nan = self->nan_index < 0 ? NULL : values[self->nan_index];
+  if (nan != NULL && nan != raise_string && !(PyUnicode_CheckExact(nan) && PyUnicode_Compare(nan, raise_string) == 0))
+    goto python;
+  step = selected(self, values);
+  if (step == NULL) goto python;
+  for (i = 0; i < self->n_args; ++i) {
+    int j = self->arguments[i];
+    argv[i] = j < 0 || values[j] == NULL ? Py_None : values[j];
+  }
+  code = step_run(step, argv);
+  if (code == NULL) return NULL;
+  if (code != Py_None) {
+    ++self->calls;
+    if (self->result == Py_None) return code;
+    Py_DECREF(code);
+    Py_INCREF(self->result);
+    return self->result;
+  }
+  Py_DECREF(code);
+python:
+  return PyObject_Vectorcall(self->fallback, args, nargsf, kwnames);
+}
+
+static int same_slots(PyObject *step, int n_slots) {
+  return PyObject_TypeCheck(step, &StepType) && ((Step *) step)->n_slots == n_slots;
+}
+
+/* Method(fallback, names, required, nan_index, select_index, steps, default_step, arguments, result). */
+static PyObject *method_new(PyTypeObject *type, PyObject *a, PyObject *kw) {
+  PyObject *fallback, *names, *steps, *default_step, *arguments, *result, *key, *value;
+  int required, nan_index, select_index, n_slots;
+  Py_ssize_t i, pos = 0;
+  Method *self;
+  if (kw != NULL && PyDict_GET_SIZE(kw)) {
+    PyErr_SetString(PyExc_TypeError, "Method takes positional arguments only");
+    return NULL;
+  }
+  if (!PyArg_ParseTuple(a, "OO!iiiOOO!O", &fallback, &PyTuple_Type, &names, &required, &nan_index, &select_index,
+                        &steps, &default_step, &PyTuple_Type, &arguments, &result)) return NULL;
+  n_slots = PyObject_TypeCheck(default_step, &StepType) ? ((Step *) default_step)->n_slots : -1;
+  if (!PyCallable_Check(fallback) || n_slots < 0 || PyTuple_GET_SIZE(names) > MAX_PARAMS || required < 0 ||
+      required > PyTuple_GET_SIZE(names) || nan_index >= PyTuple_GET_SIZE(names) ||
+      select_index >= PyTuple_GET_SIZE(names) || (select_index >= 0) != PyDict_Check(steps) ||
+      PyTuple_GET_SIZE(arguments) != 2 + n_slots) {
+    PyErr_SetString(PyExc_ValueError, "Method: bad arguments (fallback, names, required, nan_index, select_index, "
+                    "steps, default_step, arguments, result)");
+    return NULL;
+  }
+  for (i = 0; i < PyTuple_GET_SIZE(names); ++i)
+    if (!PyUnicode_CheckExact(PyTuple_GET_ITEM(names, i))) {
+      PyErr_SetString(PyExc_TypeError, "Method: parameter names must be str");
+      return NULL;
+    }
+  while (select_index >= 0 && PyDict_Next(steps, &pos, &key, &value))
+    if (!PyUnicode_CheckExact(key) || !same_slots(value, n_slots)) {
+      PyErr_SetString(PyExc_ValueError, "Method: steps maps names (str) to Steps of the default Step's slots");
+      return NULL;
+    }
+  self = (Method *) type->tp_alloc(type, 0);
+  if (self == NULL) return NULL;
+  self->vectorcall = method_call;
+  self->n_params = (int) PyTuple_GET_SIZE(names);
+  self->required = required;
+  self->nan_index = nan_index;
+  self->select_index = select_index;
+  self->n_args = 2 + n_slots;
+  for (i = 0; i < self->n_args; ++i) {
+    long j = PyLong_AsLong(PyTuple_GET_ITEM(arguments, i));
+    if (j < -1 || j >= self->n_params) {
+      if (!PyErr_Occurred()) PyErr_SetString(PyExc_ValueError, "Method: an argument's parameter index is out of range");
+      Py_DECREF(self);
+      return NULL;
+    }
+    self->arguments[i] = (int) j;
+  }
+  self->steps = select_index >= 0 ? PyDict_Copy(steps) : (Py_INCREF(Py_None), Py_None);
+  if (self->steps == NULL) {
+    Py_DECREF(self);
+    return NULL;
+  }
+  Py_INCREF(fallback);
+  self->fallback = fallback;
+  Py_INCREF(names);
+  self->names = names;
+  Py_INCREF(default_step);
+  self->default_step = default_step;
+  Py_INCREF(result);
+  self->result = result;
+  return (PyObject *) self;
+}
+
+static int method_traverse(Method *self, visitproc visit, void *arg) {
+  Py_VISIT(self->fallback);
+  Py_VISIT(self->names);
+  Py_VISIT(self->steps);
+  Py_VISIT(self->default_step);
+  Py_VISIT(self->result);
+  return 0;
+}
+
+static int method_clear(Method *self) {
+  Py_CLEAR(self->fallback);
+  Py_CLEAR(self->names);
+  Py_CLEAR(self->steps);
+  Py_CLEAR(self->default_step);
+  Py_CLEAR(self->result);
+  return 0;
+}
+
+static void method_dealloc(Method *self) {
+  PyObject_GC_UnTrack(self);
+  method_clear(self);
+  Py_TYPE(self)->tp_free((PyObject *) self);
+}
+
+static PyMemberDef method_members[] = {
+  {"calls", T_PYSSIZET, offsetof(Method, calls), READONLY, "calls the method took in C (no Python frame)"},
+  {"__wrapped__", T_OBJECT, offsetof(Method, fallback), READONLY, "the Python method (its signature and docs)"},
+  {NULL, 0, 0, 0, NULL},
+};
+
+static PyTypeObject MethodType = {
+  PyVarObject_HEAD_INIT(NULL, 0)
+  .tp_name = "_symkf_fastcall.Method",
+  .tp_doc = "A filter's step method with its fast path in C; see __wrapped__ for its parameters and docs.",
+  .tp_members = method_members,
+  .tp_basicsize = sizeof(Method),
+  .tp_flags = Py_TPFLAGS_DEFAULT | Py_TPFLAGS_HAVE_GC | Py_TPFLAGS_HAVE_VECTORCALL,
+  .tp_new = method_new,
+  .tp_dealloc = (destructor) method_dealloc,
+  .tp_traverse = (traverseproc) method_traverse,
+  .tp_clear = (inquiry) method_clear,
+  .tp_vectorcall_offset = offsetof(Method, vectorcall),
+  .tp_call = PyVectorcall_Call,
+};
+
 static struct PyModuleDef module = {
   PyModuleDef_HEAD_INIT, "_symkf_fastcall", "symkf's checked fast path for one filter step.", -1, NULL,
 };
@@ -332,12 +537,20 @@ PyMODINIT_FUNC PyInit__symkf_fastcall(void) {
 #ifdef SYMKF_NUMPY
   import_array();
 #endif
-  if (PyType_Ready(&StepType) < 0) return NULL;
+  if (PyType_Ready(&StepType) < 0 || PyType_Ready(&MethodType) < 0) return NULL;
+  raise_string = PyUnicode_InternFromString("raise");
+  if (raise_string == NULL) return NULL;
   m = PyModule_Create(&module);
   if (m == NULL) return NULL;
   Py_INCREF(&StepType);
   if (PyModule_AddObject(m, "Step", (PyObject *) &StepType) < 0) {
     Py_DECREF(&StepType);
+    Py_DECREF(m);
+    return NULL;
+  }
+  Py_INCREF(&MethodType);
+  if (PyModule_AddObject(m, "Method", (PyObject *) &MethodType) < 0) {
+    Py_DECREF(&MethodType);
     Py_DECREF(m);
     return NULL;
   }

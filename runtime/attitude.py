@@ -66,6 +66,7 @@ class AttitudeFilter(Filter):
     def _make_fast_paths(self) -> None:
         super()._make_fast_paths()
         self._fast_sample = self._fast_step(self.MEASUREMENT, ("z", "mask", "u"))
+        self._install_step(AttitudeFilter.step, self._fast_sample, (None, "dt", "q_s", None, "omega_g"))
 
     y = property(lambda self: read_only(self.measurements["star_tracker"]["y"]),
                  doc="Innovation δp_s of the last update (eq 50).")

@@ -19,6 +19,7 @@ import functools
 import hashlib
 import importlib.machinery
 import importlib.util
+import inspect
 import os
 import sys
 import sysconfig
@@ -147,3 +148,46 @@ def step(bound, t, dt, clock, slots: list[tuple], keep_alive):
                   for b, n, c in slots)
     address = [None if b is None else b.ctypes.data for b in (t, dt, clock)]
     return ext.Step(bound.c_address, bound.c_args, *address, table, STATUS_GATED, (keep_alive, bound, clock))
+
+
+def method(function, owner, default, arguments: tuple, steps: dict | None = None, select: str | None = None,
+           result=None):
+    """``owner``'s step method ``function`` with its plain calls taken in C, or None without the
+    extension or a default Step.
+
+    The returned ``Method`` is called like ``function.__get__(owner)`` (same parameters, positional
+    or by keyword) and runs a :func:`step` without a Python frame; every call it does not take goes
+    to that bound method with the same arguments (see ``_fastcall.c``). Its ``calls`` counts the
+    calls it took.
+
+    Args:
+        function: the Python method (its parameters after ``self``: required ones first, every
+            other one defaulting to None, except ``nan`` defaulting to "raise").
+        owner: the filter.
+        default: the Step of a call that names no measurement.
+        arguments: per argument of the Step (t, dt, then its slots), the name of the parameter
+            that gives it, or None (the Step gets None: e.g. t, the filter's clock).
+        steps, select: the Step of each measurement name, and the parameter naming it.
+        result: returned by a call the Method took (e.g. the state view); None: the status code.
+    """
+    ext = extension()
+    if ext is None or default is None:
+        return None
+    names, required = _parameters(function)
+    index = {name: i for i, name in enumerate(names)}
+    steps = None if select is None else {name: s for name, s in steps.items() if s is not None}
+    return ext.Method(function.__get__(owner), names, required, index.get("nan", -1),
+                      -1 if select is None else index[select], steps, default,
+                      tuple(-1 if a is None else index[a] for a in arguments), result)
+
+
+@functools.lru_cache(maxsize=None)
+def _parameters(function) -> tuple[tuple[str, ...], int]:
+    """(names, number of required ones) of a step method's parameters after ``self``, checked."""
+    parameters = list(inspect.signature(function).parameters.values())[1:]
+    for p in parameters:
+        default_ok = p.default is p.empty or p.default is None or (p.name == "nan" and p.default == "raise")
+        if p.kind is not p.POSITIONAL_OR_KEYWORD or not default_ok:
+            raise TypeError(f"fastcall.method: parameter {p.name!r} of {function.__qualname__} must be "
+                            "positional-or-keyword and default to None (nan: 'raise')")
+    return tuple(p.name for p in parameters), sum(p.default is p.empty for p in parameters)

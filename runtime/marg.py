@@ -56,6 +56,9 @@ class MargFilter(Filter):
         """step(dt, gyro, acc, mag) in C: gyro required, a missing 9-axis magnetometer sample is zeros."""
         super()._make_fast_paths()
         self._fast_sample = self._fast_step(self.mode, ("acc", "mag", "u"))
+        if self._scaling is None:                        # step returns the state view: self.x
+            self._install_step(MargFilter.step, self._fast_sample, (None, "dt", "acc", "mag", "gyro"),
+                               result=self._views["x"])
 
     #: Fast path of :meth:`step`: gyro (``u``) is required; an omitted 9-axis ``mag`` is a zero sample.
     FAST_NONE = {"mag": "zeros", "u": "decline"}

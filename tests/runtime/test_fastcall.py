@@ -260,3 +260,104 @@ def test_the_marg_mekf_common_call_takes_the_fast_path():
     assert fast.fast_calls == len(recording) - 1 and slow.fast_calls == 0
     for a, b in zip(_state(fast), _state(slow)):
         assert np.array_equal(a, b)
+
+
+# ---------------------------------------------------------------------- the step method in C
+def test_plain_step_calls_run_in_c_by_position_or_keyword(launcher_compiled):
+    """``f.step`` is the C Method: every plain spelling of the call (positional, keywords, the
+    measurement named) is taken by it (its own counter), with the Python path's numbers bit for bit."""
+    fast, slow = launcher_compiled.ekf(X0, P0, Q), _python_path(launcher_compiled.ekf(X0, P0, Q))
+    assert type(fast.step).__name__ == "Method" and type(slow.step).__name__ == "method"
+    calls = [lambda f, k: f.step(TIMES[k - 1], 0.05, Z[k], q=STATIONS[k]),
+             lambda f, k: f.step(TIMES[k - 1], 0.05, Z[k], "radar", STATIONS[k], np.ones(3)),
+             lambda f, k: f.step(z=Z[k], dt=0.05, t=TIMES[k - 1], q=STATIONS[k], nan="raise", measurement=None),
+             lambda f, k: f.step(None, 0.05, Z[k], measurement="radar", q=STATIONS[k], mask=[1, 0, 1], u=None)]
+    for k in range(1, 9):
+        assert calls[k % 4](fast, k) == calls[k % 4](slow, k) == 0
+        for a, b in zip(_state(fast), _state(slow)):
+            assert np.array_equal(a, b)
+    assert fast.step.calls == 8 and fast.fast_calls == 8 and slow.fast_calls == 0
+
+
+#: Calls the C Method hands to the Python method (which accepts or refuses them as before).
+TO_PYTHON = {
+    "nan mask": (dict(nan="mask"), None),
+    "unknown keyword": (dict(bogus=1), TypeError),
+    "measurement not a name": (dict(measurement=3), ValueError),
+    "unknown measurement": (dict(measurement="sonar"), ValueError),
+    "nan policy unknown": (dict(nan="ignore"), ValueError),
+    "z missing": (dict(z=None), ValueError),
+}
+
+
+@pytest.mark.parametrize("case", sorted(TO_PYTHON))
+def test_the_step_method_hands_other_calls_to_python(launcher_compiled, case):
+    kwargs, error = TO_PYTHON[case]
+    f, slow = launcher_compiled.ekf(X0, P0, Q), _python_path(launcher_compiled.ekf(X0, P0, Q))
+    call = {"t": 0.0, "dt": 0.05, "z": Z[1], "q": STATION, **kwargs}
+    before = _state(f)
+    if error is None:
+        assert f.step(**call) == slow.step(**call)
+        for a, b in zip(_state(f), _state(slow)):
+            assert np.array_equal(a, b)
+        assert f.step.calls == 0 and f.fast_calls == 0
+    else:
+        with pytest.raises(error) as caught:
+            f.step(**call)
+        with pytest.raises(error) as expected:
+            slow.step(**call)
+        assert str(caught.value) == str(expected.value)
+        assert all(np.array_equal(a, b) for a, b in zip(before, _state(f))) and f.step.calls == 0
+
+
+def test_the_step_method_takes_any_measurement_with_a_fast_path(launcher_compiled):
+    fast, slow = launcher_compiled.ekf(X0, P0, Q), _python_path(launcher_compiled.ekf(X0, P0, Q))
+    q = np.zeros(fast.kernel_buffer("q", "radar_wgs84").size)
+    q[:STATION.size] = STATION
+    assert fast.step(0.0, 0.05, Z[1], "radar_wgs84", q) == slow.step(0.0, 0.05, Z[1], "radar_wgs84", q) == 0
+    assert fast.step.calls == 1
+    for a, b in zip(_state(fast), _state(slow)):
+        assert np.array_equal(a, b)
+
+
+def test_the_step_method_keeps_python_s_errors_for_bad_arity(launcher_compiled):
+    f = launcher_compiled.ekf(X0, P0, Q)
+    with pytest.raises(TypeError, match="missing 1 required positional argument: 'z'"):
+        f.step(0.0, 0.05)
+    with pytest.raises(TypeError, match="multiple values for argument 't'"):
+        f.step(0.0, 0.05, Z[1], t=0.0, q=STATION)
+    with pytest.raises(TypeError, match="positional arguments"):
+        f.step(0.0, 0.05, Z[1], "radar", STATION, None, None, "raise", 9)
+    assert f.step.calls == 0 and f.t == 0.0
+
+
+def test_marg_step_method_returns_the_state_view(marg):
+    f = MargFilter(marg)
+    q = f.step(0.01, np.zeros(3), np.array([0.0, 0.0, 9.8]), np.array([20.0, 0.0, -40.0]))
+    assert q is f.x and not q.flags.writeable and f.step.calls == 1
+    f.step(dt=0.01, gyro=[0.0, 0.0, 0.1], acc=[0.0, 0.0, 9.8])              # mag omitted: zeros, in C
+    assert f.step.calls == 2
+    with pytest.raises(ValueError):
+        f.step(0.01, [0.0, True, 0.0], [0.0, 0.0, 9.8])                    # a bool in a list: refused
+    assert f.step.calls == 2 and f.fast_calls == 2
+
+
+def test_attitude_step_method_predicts_through_python_without_a_sample():
+    f = attitude_filter("mekf", [0, 0, 0, 1.0], np.zeros(3), np.eye(6) * 1e-4, backend="compiled")
+    q_s = np.array([0.01, 0.0, 0.0, np.sqrt(1 - 1e-4)])
+    assert f.step(np.array([1e-3, 0.0, 2e-3]), 0.1, q_s) == 0 and f.step.calls == 1
+    assert f.step(np.array([1e-3, 0.0, 2e-3]), 0.1) == 0 and f.step.calls == 1       # q_s None: predict
+    assert f.t == pytest.approx(0.2)
+
+
+def test_a_subclass_s_own_step_is_not_replaced(launcher_compiled):
+    from symkf.runtime.filters import Filter
+
+    class Logged(Filter):
+        def step(self, *args, **kwargs):
+            self.logged = True
+            return super().step(*args, **kwargs)
+
+    f = Logged(launcher_compiled, "ekf", X0, P0, Q)
+    assert "step" not in f.__dict__
+    assert f.step(0.0, 0.05, Z[1], q=STATION) == 0 and f.logged and f.fast_calls == 1
