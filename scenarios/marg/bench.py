@@ -203,8 +203,9 @@ def _print_tables(result: dict) -> None:
     if counts:
         print(f"\nmekf instructions per sample (callgrind, {result['timing_trial']}, C API): "
               + ", ".join(f"{part} {counts[part]:.0f}" for part in ("predict", "update", "step", "run"))
-              + f"; run's step kernel {counts['run_kernel']:.0f}, wrapper checks and copies "
-              f"{counts['run'] - counts['run_kernel']:.0f}")
+              + f"; run's step kernels {counts['run_kernel']:.0f}, loop checks and copies "
+              f"{counts['run'] - counts['run_kernel']:.0f} (samples 1000-3000, at rest); whole trial: run "
+              f"{counts['run_trial']:.0f}, kernels {counts['run_trial_kernel']:.0f}")
     elif "mekf_instructions_per_sample" in result:
         print("\nmekf instructions per sample: valgrind not found")
     print("\nBROAD RMSE total/heading/inclination [deg], movement phases:")

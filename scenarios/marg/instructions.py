@@ -12,7 +12,9 @@ samples to one part of the filter's C API:
   step without the checks its own state cannot fail: ``Kernel.trusted``).
 
 Each part is counted over 3000 and over 1000 samples; the difference / 2000 is its cost per
-sample without start-up. For ``run`` the kernels' own share (callgrind's inclusive counts of
+sample without start-up. Those samples are the trial's initial rest (every component used but the
+heading at times); ``run_trial`` counts the run from sample 1000 to the end of the trial, with
+the mask patterns of the whole recording (the kernels specialised per mask pattern show there). For ``run`` the kernels' own share (callgrind's inclusive counts of
 ``marg_ekf_k_mekf_run_marg`` and of its trusted partner and variants, which the loop iterates once
 a step has succeeded) is reported too: the rest is the loop's checks and copies.
 """
@@ -77,8 +79,11 @@ int main(int argc, char **argv) {
 """
 
 
-def count_instructions(directory: Path, recording) -> dict:
-    """{part: instructions per sample} and ``run_kernel`` (the run kernel's share inside the run)."""
+def count_instructions(directory: Path, recording, whole_trial: bool = True) -> dict:
+    """{part: instructions per sample} and ``run_kernel`` (the run kernel's share inside the run);
+    ``whole_trial``: also ``run_trial`` and ``run_trial_kernel``, the run from sample 1000 to the
+    end of the recording (every mask pattern in its proportion, unlike samples 1000-3000, which
+    are BROAD's initial rest)."""
     if shutil.which("valgrind") is None:
         return {}
     with tempfile.TemporaryDirectory() as tmp:
@@ -90,6 +95,12 @@ def count_instructions(directory: Path, recording) -> dict:
             out[part] = (counts[1][0] - counts[0][0]) / (SAMPLES[1] - SAMPLES[0])
             if part == "run":
                 out["run_kernel"] = (counts[1][1] - counts[0][1]) / (SAMPLES[1] - SAMPLES[0])
+        if whole_trial:
+            n = len(recording)
+            data = _driver_input(recording, n)
+            counts = [_callgrind(exe, "run", m, data, Path(tmp)) for m in (SAMPLES[0], n)]
+            out["run_trial"] = (counts[1][0] - counts[0][0]) / (n - SAMPLES[0])
+            out["run_trial_kernel"] = (counts[1][1] - counts[0][1]) / (n - SAMPLES[0])
         return out
 
 
