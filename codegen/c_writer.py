@@ -1023,6 +1023,9 @@ def _function_doc(model: str, kernel: Kernel) -> list[str]:
                                                   " t[k] + dt[k]," if "t" in per_step else ""),
                   " *   " + ("so t[k + 1] = t[k] + dt[k]. " if "t" in per_step else "")
                   + "A failed step keeps the state and the loop goes on.",
+                  *([f" *   Once a step has succeeded, the loop calls {model}_{kernel.trusted} instead (or one of its",
+                     " *   variants: same results), which leaves out tests of the loop's own state (see its description)."]
+                    if kernel.trusted else []),
                   " * Returns: the first SYMKF_ERR_* step code (a gated step is not an error), SYMKF_ERR_ARGS if",
                   " *   n_steps < 0, else SYMKF_OK.",
                   f" * Stack: {_macro(name)}_RUN_STACK_BYTES bytes (worst call path, measured by the compiler).",

@@ -27,7 +27,9 @@ measurement (``Model.measurement(..., quaternion=True)``) has its innovation z �
 chart; a measurement with its own noise v (``Model.measurement_noise``) has R = cov(v), entering
 as D R Dᵀ with D = ∂(h(x̂, v) ⊟ h(x̂, 0))/∂v. ``models/attitude.py`` sets paper 000's options;
 its separated-noise and augmented UKFs are the families "sukf" and "aukf" of
-``quaternion_filters.py``, on these same primitives.
+``quaternion_filters.py``, on these same primitives. ``manifold_run_variants`` lists mask
+patterns that get MEKF step and run kernels of their own, the masked components and the gate
+folded away (:func:`mekf_run_kernels`; the same results, a larger bundle).
 
 **Prediction.** The mean is the model's RK4 step f_d (``codegen/discretize.py``) followed by a
 projection of every quaternion onto the unit sphere (q / |q|). MEKF: P⁻ = F P Fᵀ + Q_d with
