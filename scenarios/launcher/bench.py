@@ -11,10 +11,13 @@ Paths (rows ``{"filter", "path", "us_per_step", ...}``):
 - ``compiled_step_python``: the calls of ``compiled_step`` with the fast path off
   (``filter.fast_path = False``): every call through the Python contract, as before issue 12;
   the three are timed in alternate batches so that they see the same machine load;
-- ``c_loop``: the same generated ``launcher_<filter>_step_radar`` called in a C loop (no Python),
-  from a harness compiled against build/launcher/ with the library's flags; timed in rounds
-  alternating with the step paths above (``ROUNDS``; medians over rounds), so that the ratio
-  ``compiled_step / c_loop`` compares figures taken under the same load;
+- ``c_loop``: the same generated ``launcher_<filter>_step_radar`` called in a C loop (no Python
+  per step) over the same record, compiled against build/launcher/ with the library's flags and
+  loaded into this process (ctypes, one call per batch of 100 steps): its batches alternate with
+  the step paths' above, so the ratio ``compiled_step / c_loop`` compares batches taken under
+  the same load; ``ROUNDS`` rounds, medians, and each round's ratio reported (the spread);
+- ``c_loop_process``: the same C loop as a program of its own (the harness ``--instructions``
+  counts), run after each round's batches: the figure before the in-process loop, kept beside it;
 - ``compiled_run``: per step inside one ``launcher_<filter>_step_radar_run`` call;
 - ``filterpy`` (when FilterPy is installed, ``pip install -e .[bench]``): FilterPy's EKF and UKF
   on the same model, calling our compiled f_d, F, h, H, with the same kappa.
@@ -30,6 +33,7 @@ branching event split). The table ends with issue 12's measures: the figure in t
 """
 from __future__ import annotations
 
+import ctypes
 import json
 import shutil
 import statistics
@@ -99,41 +103,69 @@ def _options(family: str) -> dict:
     return {"kappa": TUNING["kappa"]} if family == "ukf" else {}
 
 
-#: Rounds of the step timing: each round times the Python step paths, then the C loop, so that the
-#: ratio compiled_step / c_loop compares figures taken under the same machine load.
+#: Rounds of the step timing (medians over rounds; the spread of the rounds' ratios is reported).
 ROUNDS = 5
+#: Steps per round and path, at least (``--steps`` / ROUNDS if larger): 10 batches of 100.
+MIN_ROUND_STEPS = 1000
 
 
-def time_steps_and_c_loop(model, work: Workload) -> dict[str, dict[str, float]]:
-    """µs per step of the Python step paths and of ``c_loop``, per filter: medians over
-    :data:`ROUNDS` rounds of ``work.steps / ROUNDS`` steps, each round timing the Python paths
-    (alternate batches) and then the C loop."""
-    steps = max(100, work.steps // ROUNDS)
-    rounds = []
-    for _ in range(ROUNDS):
-        figures = {family: time_compiled_step(model, family, work, steps=steps) for family in FILTERS}
-        loop = time_c_loop(work, steps)
-        for family in FILTERS:
-            figures[family]["c_loop"] = loop[family]["us_per_step"]
-        rounds.append(figures)
-    return {family: {path: statistics.median(r[family][path] for r in rounds) for path in rounds[0][family]}
-            for family in FILTERS}
+def time_steps_and_c_loop(model, work: Workload) -> tuple[dict[str, dict[str, float]], dict]:
+    """µs per step of the Python step paths, of ``c_loop`` and of ``c_loop_process``, per filter:
+    medians over :data:`ROUNDS` rounds. A round times every path but the last in alternate batches
+    of 100 steps (the C loop in this process, :class:`CLoop`), so that compiled_step / c_loop
+    compares batches taken under the same load (this 2-core machine swings between ~2.0 and ~3.6 µs
+    for the same C EKF loop as other jobs come and go), then runs the separate-process C loop (the
+    harness of ``--instructions``) over as many steps. Also the spread: per filter and round,
+    compiled_step / c_loop and compiled_step / c_loop_process."""
+    steps = max(MIN_ROUND_STEPS, work.steps // ROUNDS)
+    directory = build_model("launcher").directory
+    with tempfile.TemporaryDirectory() as tmp:
+        loop = CLoop(work, directory, Path(tmp))
+        exe = callgrind.compile_driver(directory, C_LOOP, Path(tmp) / "c_loop", defines=("-D_POSIX_C_SOURCE=199309L",))
+        stdin = _c_loop_input(work)
+        rounds = []
+        for _ in range(ROUNDS):
+            figures = {}
+            for family in FILTERS:
+                figures[family] = time_compiled_step(model, family, work, steps=steps, c_loop=loop)
+                figures[family]["c_loop_process"] = _c_loop_process(exe, stdin, family, steps)
+            rounds.append(figures)
+    medians = {family: {path: statistics.median(r[family][path] for r in rounds) for path in rounds[0][family]}
+               for family in FILTERS}
+    spread = {f"{family} compiled_step/{loop_path}": [r[family]["compiled_step"] / r[family][loop_path] for r in rounds]
+              for family in FILTERS for loop_path in ("c_loop", "c_loop_process")}
+    return medians, spread
 
 
-def time_compiled_step(model, family: str, work: Workload, batch: int = 100, steps: int | None = None) -> dict[str, float]:
+def _c_loop_process(exe: Path, stdin: str, family: str, steps: int) -> float:
+    """µs per step of the C loop as a program of its own (median over its batches of 100)."""
+    proc = subprocess.run([str(exe), family, str(steps)], input=stdin, capture_output=True, text=True, check=True)
+    value, code = proc.stdout.split()
+    if int(code):
+        raise RuntimeError(f"c_loop: {family} step returned a failure code")
+    return float(value)
+
+
+def time_compiled_step(model, family: str, work: Workload, batch: int = 100, steps: int | None = None,
+                       c_loop: "CLoop | None" = None) -> dict[str, float]:
     """µs per ``step`` call: ``compiled_step`` and ``compiled_step_rows`` (C fast path, inputs
     ready or indexed in the loop) and ``compiled_step_python`` (the Python contract path), each
-    on its own filter over the same ``steps`` (default ``work.steps``), in alternate batches."""
+    on its own filter over the same ``steps`` (default ``work.steps``), in alternate batches; with
+    ``c_loop``, also the C loop's batches over the same steps, in turn with them."""
     paths = ("compiled_step", "compiled_step_rows", "compiled_step_python")
     filters = {path: model.filter(family, work.x0, work.P0, TUNING["Q"], **_options(family)) for path in paths}
     filters["compiled_step_python"].fast_path = False
+    if c_loop is not None:
+        filters["c_loop"] = c_loop
     times, z, q, dt = work.base_times, work.z, work.q, 1.0 / RATE_HZ
     ready = [(float(times[i - 1]), z[i].copy(), q[i].copy()) for i in range(len(times))]
     batches = {path: [] for path in filters}
     for k0 in range(0, work.steps if steps is None else steps, batch):
         for path, f in filters.items():
             start = time.perf_counter()
-            if path == "compiled_step_rows":
+            if path == "c_loop":
+                f.batch(family, k0, batch)
+            elif path == "compiled_step_rows":
                 for k in range(k0, k0 + batch):
                     i = work.index(k)
                     if i == 1:                  # the segment starts again (one batch's median is spared)
@@ -148,6 +180,57 @@ def time_compiled_step(model, family: str, work: Workload, batch: int = 100, ste
                     f.step(t, dt, z_i, q=q_i)
             batches[path].append(time.perf_counter() - start)
     return {path: _median_us(b, batch) for path, b in batches.items()}
+
+
+#: The C loop of ``c_loop``, called in-process one batch at a time (:class:`CLoop`).
+C_LOOP_BATCH = r"""
+#include <string.h>
+#include "launcher.h"
+/* Steps k0 .. k0 + count - 1 of the record (n rows: T, Z[3], QS[2]), step k with row j = 1 + k % (n - 1),
+   from x, P (restarting from x0, P0 at j = 1): launcher_<filter>_step_radar, mask all ones, no gate,
+   as the Python paths call it. Returns the OR of the status codes. */
+int c_loop_batch(int ukf, int k0, int count, int n, const double *T, const double *Z, const double *QS,
+                 const double *x0, const double *P0, double *x, double *P, const double *p, const double *Q,
+                 const double *R, double kappa, double dt) {
+  static const double mask[3] = {1, 1, 1}, gate[3] = {0, 0, 0};
+  double y[3], S[9];
+  int k, code = 0;
+  for (k = k0; k < k0 + count; ++k) {
+    int j = 1 + k % (n - 1);
+    if (j == 1) { memcpy(x, x0, 6 * sizeof *x); memcpy(P, P0, 36 * sizeof *P); }
+    code |= ukf ? launcher_ukf_step_radar(T[j - 1], dt, x, P, p, Q, &QS[2 * j], &Z[3 * j], mask, R, gate, kappa, x, P, y, S)
+                : launcher_ekf_step_radar(T[j - 1], dt, x, P, p, Q, &QS[2 * j], &Z[3 * j], mask, R, gate, x, P, y, S);
+  }
+  return code;
+}
+"""
+
+
+class CLoop:
+    """``c_loop`` in this process: :data:`C_LOOP_BATCH` compiled against the bundle in
+    ``directory`` with its flags (the library the filters run) and called through ctypes once per
+    batch of steps (one ctypes call per 100 steps: ~0.01 µs a step), so its batches alternate with
+    the Python paths' under the same load and cache. Each filter carries its own x, P."""
+
+    def __init__(self, work: Workload, directory: Path, tmp: Path):
+        library = callgrind.compile_driver(directory, C_LOOP_BATCH, tmp / "c_loop_batch.so", defines=("-shared", "-fPIC"))
+        self.function = ctypes.CDLL(str(library)).c_loop_batch
+        self.function.restype = ctypes.c_int
+        self.function.argtypes = [ctypes.c_int] * 4 + [ctypes.c_void_p] * 10 + [ctypes.c_double] * 2
+        p = np.array([L.GUIDANCE[name] for name in L.GUIDANCE_PARAMS])
+        self.constants = [np.ascontiguousarray(a, dtype=float) for a in (
+            work.base_times, work.z, work.q, work.x0, np.ravel(work.P0, "F"))]
+        self.state = {family: (np.array(work.x0, dtype=float), np.ravel(work.P0, "F").copy()) for family in FILTERS}
+        self.parameters = [np.ascontiguousarray(a, dtype=float) for a in (
+            p, np.ravel(TUNING["Q"], "F"), np.ravel(np.diag(np.square(L.RADAR_SIGMA)), "F"))]
+        self.n = len(work.base_times)
+
+    def batch(self, family: str, k0: int, count: int) -> None:
+        x, P = self.state[family]
+        pointers = [a.ctypes.data for a in self.constants + [x, P] + self.parameters]
+        code = self.function(int(family == "ukf"), k0, count, self.n, *pointers, TUNING["kappa"], 1.0 / RATE_HZ)
+        if code:
+            raise RuntimeError(f"c_loop: {family} step returned a failure code")
 
 
 def time_compiled_run(model, family: str, work: Workload) -> float:
@@ -287,12 +370,7 @@ def time_c_loop(work: Workload, steps: int, instructions: bool = False, director
         stdin = _c_loop_input(work)
         out = {}
         for family in FILTERS:
-            proc = subprocess.run([str(exe), family, str(steps)], input=stdin, capture_output=True,
-                                  text=True, check=True)
-            value, code = proc.stdout.split()
-            if int(code):
-                raise RuntimeError(f"c_loop: {family} step returned a failure code")
-            out[family] = {"us_per_step": float(value)}
+            out[family] = {"us_per_step": _c_loop_process(exe, stdin, family, steps)}
             if instructions and shutil.which("valgrind"):
                 counts = {part: _instructions_per_step(exe, family, part, stdin, Path(tmp)) for part in PARTS}
                 parts = {part: total for part, (total, _) in counts.items()}
@@ -350,7 +428,7 @@ def measure(steps: int, reference_steps: int, campaign: bool, instructions: bool
     model = load("launcher", backend="compiled")
     work = Workload(steps)
     c_loop = time_c_loop(work, steps, instructions) if instructions else {family: {} for family in FILTERS}
-    interleaved = time_steps_and_c_loop(model, work)
+    interleaved, spread = time_steps_and_c_loop(model, work)
     rows = []
     for family in FILTERS:
         figures = {"numpy_reference": time_reference(family, work, reference_steps),
@@ -366,7 +444,7 @@ def measure(steps: int, reference_steps: int, campaign: bool, instructions: bool
                 row["instructions_by_part"] = c_loop[family]["instructions_by_part"]
             rows.append(row)
     report = {"rows": rows, "paper_ms_per_step": L.PAPER_MS_PER_STEP, "ratios": ratios(rows),
-              "steps": steps, "reference_steps": reference_steps}
+              "ratios by round": spread, "steps": steps, "reference_steps": reference_steps}
     if campaign:
         report.update(time_campaign(scheduler))
     report["targets"] = targets(report)
@@ -493,6 +571,7 @@ def ratios(rows: list[dict]) -> dict:
         step = value[(family, "compiled_step")]
         out[family] = {"numpy_reference/compiled_step": value[(family, "numpy_reference")] / step,
                        "compiled_step/c_loop": step / value[(family, "c_loop")],
+                       "compiled_step/c_loop_process": step / value[(family, "c_loop_process")],
                        "compiled_step_rows/c_loop": value[(family, "compiled_step_rows")] / value[(family, "c_loop")],
                        "compiled_step_python/c_loop": value[(family, "compiled_step_python")] / value[(family, "c_loop")],
                        "compiled_run/c_loop": value[(family, "compiled_run")] / value[(family, "c_loop")]}
@@ -507,7 +586,7 @@ def ratios(rows: list[dict]) -> dict:
 def human_table(report: dict) -> str:
     value = {(r["filter"], r["path"]): r["us_per_step"] for r in report["rows"]}
     paths = [p for p in ("numpy_reference", "filterpy", "compiled_step_python", "compiled_step_rows", "compiled_step",
-                         "compiled_run", "c_loop")
+                         "compiled_run", "c_loop", "c_loop_process")
              if ("ekf", p) in value]
     lines = [f"{'path':<18}{'EKF us/step':>14}{'UKF us/step':>14}{'UKF/EKF':>10}",
              f"{'paper (MATLAB)':<18}{report['paper_ms_per_step']['ekf'] * 1e3:>14.1f}"
@@ -521,6 +600,10 @@ def human_table(report: dict) -> str:
         lines.append(f"{'c_loop instr.':<18}{counts['ekf']:>14.0f}{counts['ukf']:>14.0f}{counts['ukf'] / counts['ekf']:>10.2f}")
     for family in FILTERS:
         lines.append(f"{family}: " + ", ".join(f"{k} = {v:.1f}" for k, v in report["ratios"][family].items()))
+    for name, by_round in report.get("ratios by round", {}).items():
+        family, ratio = name.split()
+        lines.append(f"{family}: {ratio} = {report['ratios'][family][ratio]:.2f} (medians over {len(by_round)} rounds; "
+                     f"each round's: {min(by_round):.2f}-{max(by_round):.2f})")
     if "campaign_wall_s" in report:
         lines += campaign_lines(report)
     def figure(value) -> str:

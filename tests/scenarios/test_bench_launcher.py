@@ -17,6 +17,29 @@ def test_bench_json_has_every_path(capsys, launcher_compiled):
     value = {(r["filter"], r["path"]): r["us_per_step"] for r in report["rows"]}
     assert abs(report["ratios"]["ukf"]["compiled_step/c_loop"]
                - value[("ukf", "compiled_step")] / value[("ukf", "c_loop")]) < 1e-9
+    assert ("ekf", "c_loop_process") in paths
+    by_round = report["ratios by round"]
+    assert sorted(by_round) == sorted(f"{f} compiled_step/{p}" for f in ("ekf", "ukf") for p in ("c_loop", "c_loop_process"))
+    assert all(len(v) == 5 and min(v) > 0 for v in by_round.values())
+
+
+def test_c_loop_does_the_work_of_compiled_step(tmp_path, launcher_compiled):
+    """The in-process C loop (the ratio's denominator) steps the same record with the same inputs
+    as ``compiled_step``: x and P equal bit for bit after 300 steps of each filter."""
+    import numpy as np
+    from symkf.codegen import build_model
+    from symkf.scenarios.launcher import bench
+
+    work = bench.Workload(300)
+    loop = bench.CLoop(work, build_model("launcher").directory, tmp_path)
+    for family in bench.FILTERS:
+        f = launcher_compiled.filter(family, work.x0, work.P0, bench.TUNING["Q"], **bench._options(family))
+        for k in range(300):
+            i = work.index(k)
+            f.step(float(work.base_times[i - 1]), 1.0 / bench.RATE_HZ, work.z[i].copy(), q=work.q[i].copy())
+        loop.batch(family, 0, 300)
+        x, P = loop.state[family]
+        assert np.array_equal(f.x, x) and np.array_equal(np.ravel(f.P, "F"), P)
 
 
 def test_step_breakdown_groups_every_function_of_a_step_once():
