@@ -23,7 +23,8 @@
  * So this file adds speed, never a rule: every call it accepts, the Python path accepts too and
  * writes the very same values. Arrays are read through the buffer protocol; with SYMKF_NUMPY
  * (numpy's headers found at build time) an exact numpy.ndarray is read from its fields instead,
- * which skips the buffer export numpy builds for every new row view.
+ * which skips the buffer export numpy builds for every new row view. Each array's values are
+ * copied once into a local array, checked there and written from there.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -75,9 +76,14 @@ typedef struct {
   PyObject *keep_alive;
 } Step;
 
-/* A Python float (or subclass, e.g. numpy.float64) that is finite. */
+/* A Python float (or subclass: numpy.float64 is one, tested first by its type) that is finite. */
+#ifdef SYMKF_NUMPY
+#define FLOAT64_SCALAR(o) (Py_TYPE(o) == &PyDoubleArrType_Type)
+#else
+#define FLOAT64_SCALAR(o) 0
+#endif
 static int finite_float(PyObject *o, double *value) {
-  if (!PyFloat_Check(o)) return 0;
+  if (!(PyFloat_CheckExact(o) || FLOAT64_SCALAR(o) || PyFloat_Check(o))) return 0;
   *value = PyFloat_AS_DOUBLE(o);
   return isfinite(*value);
 }
@@ -90,32 +96,33 @@ static int native_double(const char *format) {
   return format[0] == 'd' && format[1] == '\0';
 }
 
-/* One array argument being read: its first entry, the stride in bytes, and the buffer view held
-   while it is read (held = 0 for an ndarray read from its fields, or None). */
+/* One array argument, read: its values copied here (so that checking and writing them read a
+   small contiguous array, and an input that is itself a bound buffer cannot alias the write). */
 typedef struct {
-  const char *buf;
-  Py_ssize_t stride;
-  int held;
-  Py_buffer view;
-  double items[MAX_SIZE];   /* a list or tuple's numbers, converted as numpy.asarray(o, float) does */
+  int given;                 /* 0: the argument was None */
+  double values[MAX_SIZE];
 } Input;
 
-static double entry(const Input *in, Py_ssize_t i) {
-  double v;
-  memcpy(&v, in->buf + i * in->stride, sizeof v);
-  return v;
-}
-
-static int values_ok(const Input *in, Py_ssize_t n, int check) {
+/* 1 if the n values pass `check`: finite (CHECK_FINITE), exactly 0 or 1 (CHECK_MASK); CHECK_USED
+   is checked later against the mask (used_ok). */
+static int checked(const double *v, Py_ssize_t n, int check) {
   Py_ssize_t i;
-  for (i = 0; i < n; ++i) {
-    double v = entry(in, i);
-    if (check == CHECK_MASK ? v != 0.0 && v != 1.0 : !isfinite(v)) return 0;
+  double sum = 0.0;
+  if (check == CHECK_MASK) {
+    for (i = 0; i < n; ++i) if (v[i] != 0.0 && v[i] != 1.0) return 0;
+  } else if (check == CHECK_FINITE) {
+    for (i = 0; i < n; ++i) sum += v[i] - v[i];      /* 0 unless an entry is NaN or +-Inf (then NaN) */
+    return sum == 0.0;
   }
   return 1;
 }
 
-/* 1: `o` is a list or tuple of `size` Python floats or ints (not bools), read into in->items.
+static void gather(Input *in, const char *buf, Py_ssize_t stride, Py_ssize_t n) {
+  Py_ssize_t i;
+  for (i = 0; i < n; ++i, buf += stride) memcpy(&in->values[i], buf, sizeof(double));
+}
+
+/* 1: `o` is a list or tuple of `size` Python floats or ints (not bools), read into in->values.
    A float converts exactly; an int as PyLong_AsDouble (correctly rounded, as numpy converts it). */
 static int sequence_ok(const Slot *slot, PyObject *o, Input *in) {
   Py_ssize_t i, n = PySequence_Fast_GET_SIZE(o);
@@ -123,77 +130,70 @@ static int sequence_ok(const Slot *slot, PyObject *o, Input *in) {
   if (n != slot->size || n > MAX_SIZE) return 0;
   for (i = 0; i < n; ++i) {
     PyObject *item = items[i];
-    if (PyFloat_Check(item)) in->items[i] = PyFloat_AS_DOUBLE(item);
+    if (PyFloat_Check(item)) in->values[i] = PyFloat_AS_DOUBLE(item);
     else if (PyLong_CheckExact(item)) {
-      in->items[i] = PyLong_AsDouble(item);
-      if (in->items[i] == -1.0 && PyErr_Occurred()) { PyErr_Clear(); return 0; }
+      in->values[i] = PyLong_AsDouble(item);
+      if (in->values[i] == -1.0 && PyErr_Occurred()) { PyErr_Clear(); return 0; }
     } else return 0;
   }
-  in->buf = (const char *) in->items;
-  in->stride = (Py_ssize_t) sizeof(double);
   return 1;
 }
 
-/* 1: `o` is a native float64 1-D array of `size` entries (in->buf, in->stride set); 0: it is not. */
+/* 1: `o` is a native float64 1-D array of `size` entries, read into in->values; 0: it is not. */
 static int shape_ok(const Slot *slot, PyObject *o, Input *in) {
+  Py_buffer view;
+  int ok;
   if (PyList_CheckExact(o) || PyTuple_CheckExact(o)) return sequence_ok(slot, o, in);
 #ifdef SYMKF_NUMPY
   if (PyArray_CheckExact(o)) {
     PyArrayObject *a = (PyArrayObject *) o;
     if (PyArray_TYPE(a) != NPY_DOUBLE || !PyArray_ISNOTSWAPPED(a) || PyArray_NDIM(a) != 1 ||
         PyArray_DIM(a, 0) != slot->size) return 0;
-    in->buf = PyArray_BYTES(a);
-    in->stride = PyArray_STRIDE(a, 0);
+    gather(in, PyArray_BYTES(a), PyArray_STRIDE(a, 0), slot->size);
     return 1;
   }
 #endif
-  if (PyObject_GetBuffer(o, &in->view, PyBUF_STRIDES | PyBUF_FORMAT) != 0) {
+  if (PyObject_GetBuffer(o, &view, PyBUF_STRIDES | PyBUF_FORMAT) != 0) {
     PyErr_Clear();
     return 0;
   }
-  in->held = 1;
-  in->buf = (const char *) in->view.buf;
-  in->stride = in->view.ndim == 1 ? in->view.strides[0] : 0;
-  return in->view.ndim == 1 && in->view.shape[0] == slot->size && in->view.itemsize == 8 &&
-         native_double(in->view.format);
+  ok = view.ndim == 1 && view.shape[0] == slot->size && view.itemsize == 8 && native_double(view.format);
+  if (ok) gather(in, (const char *) view.buf, view.strides[0], slot->size);
+  PyBuffer_Release(&view);
+  return ok;
 }
 
 /* Phase 1 for one slot: 1 if `o` fits (or is an accepted None), 0 if Python must answer.
    Never writes a buffer. A CHECK_USED slot's values are checked afterwards (used_ok). */
 static int accept(const Slot *slot, PyObject *o, Input *in) {
-  in->held = 0;
+  in->given = 0;
   if (o == Py_None) return slot->if_none != NONE_DECLINE;
-  if (slot->if_none == ABSENT) return 0;
-  return shape_ok(slot, o, in) && (slot->check == CHECK_USED || values_ok(in, slot->size, slot->check));
+  if (slot->if_none == ABSENT || !shape_ok(slot, o, in)) return 0;
+  in->given = 1;
+  return checked(in->values, slot->size, slot->check);
 }
 
-/* Whether the mask (given as `o`, read through `in`, or None) uses component i of an n-vector:
-   a mask of n entries per component, a mask of one entry for the whole measurement. */
-static int used(const Slot *mask, PyObject *o, const Input *in, Py_ssize_t i, Py_ssize_t n) {
-  Py_ssize_t j = mask->size == n ? i : 0;
-  if (o != Py_None) return entry(in, j) == 1.0;
-  return mask->if_none == NONE_ONES || (mask->if_none == NONE_KEEP && mask->dst[j] > 0.5);
-}
-
-/* Phase 1 for a CHECK_USED slot (after every slot was accepted): finite where used. */
-static int used_ok(const Step *self, int s, PyObject *const *arrays, const Input *inputs) {
-  const Slot *slot = &self->slots[s];
-  const int m = self->mask_slot;
+/* Phase 1 for a CHECK_USED slot (after every slot was accepted): finite where the mask uses the
+   component. The mask (n entries, one per component, or one for the whole measurement) is the
+   call's, or for None all ones (NONE_ONES) or the held buffer (NONE_KEEP); a component is used
+   where its mask entry is 1 (> 0.5 for the held buffer, as the kernel reads it). */
+static int used_ok(const Step *self, int s, const Input *inputs) {
+  const Slot *slot = &self->slots[s], *mask = self->mask_slot < 0 ? NULL : &self->slots[self->mask_slot];
+  const double *z = inputs[s].values, *m;
   Py_ssize_t i;
-  if (arrays[s] == Py_None) return 1;
-  for (i = 0; i < slot->size; ++i) {
-    int needed = m < 0 || self->slots[m].size == 0 || used(&self->slots[m], arrays[m], &inputs[m], i, slot->size);
-    if (needed && !isfinite(entry(&inputs[s], i))) return 0;
-  }
+  if (!inputs[s].given) return 1;
+  if (mask == NULL || mask->size == 0) return checked(z, slot->size, CHECK_FINITE);
+  m = inputs[self->mask_slot].given ? inputs[self->mask_slot].values : mask->if_none == NONE_KEEP ? mask->dst : NULL;
+  if (m == NULL) return mask->if_none == NONE_ONES ? checked(z, slot->size, CHECK_FINITE) : 1;
+  for (i = 0; i < slot->size; ++i)
+    if (m[mask->size == slot->size ? i : 0] > 0.5 && !isfinite(z[i])) return 0;
   return 1;
 }
 
-static void write_slot(const Slot *slot, PyObject *o, const Input *in) {
+static void write_slot(const Slot *slot, const Input *in) {
   Py_ssize_t i;
-  if (o != Py_None) {
-    double copy[MAX_SIZE];               /* the input may alias the buffer: read all, then write */
-    for (i = 0; i < slot->size; ++i) copy[i] = entry(in, i);
-    memcpy(slot->dst, copy, (size_t) slot->size * sizeof(double));
+  if (in->given) {
+    for (i = 0; i < slot->size; ++i) slot->dst[i] = in->values[i];
   } else if (slot->if_none == NONE_ONES || slot->if_none == NONE_ZEROS) {
     for (i = 0; i < slot->size; ++i) slot->dst[i] = slot->if_none == NONE_ONES ? 1.0 : 0.0;
   }
@@ -203,22 +203,17 @@ static void write_slot(const Slot *slot, PyObject *o, const Input *in) {
    status code (a new int), or None having written nothing (see the top of this file). */
 static PyObject *step_run(Step *self, PyObject *const *argv) {
   Input inputs[MAX_SLOTS];
-  int i, fits = 1, code;
+  int i, code;
   double t, dt;
   if (argv[0] == Py_None && self->clock != NULL) t = *self->clock;
   else if (!finite_float(argv[0], &t)) Py_RETURN_NONE;
   if (!finite_float(argv[1], &dt) || !(dt > 0.0)) Py_RETURN_NONE;
-  for (i = 0; i < self->n_slots; ++i) inputs[i].held = 0;
-  for (i = 0; i < self->n_slots && fits; ++i) fits = accept(&self->slots[i], argv[2 + i], &inputs[i]);
-  for (i = 0; i < self->n_slots && fits; ++i)
-    if (self->slots[i].check == CHECK_USED) fits = used_ok(self, i, argv + 2, inputs);
-  if (fits) {
-    if (self->t != NULL) *self->t = t;
-    if (self->dt != NULL) *self->dt = dt;
-    for (i = 0; i < self->n_slots; ++i) write_slot(&self->slots[i], argv[2 + i], &inputs[i]);
-  }
-  for (i = 0; i < self->n_slots; ++i) if (inputs[i].held) PyBuffer_Release(&inputs[i].view);
-  if (!fits) Py_RETURN_NONE;
+  for (i = 0; i < self->n_slots; ++i) if (!accept(&self->slots[i], argv[2 + i], &inputs[i])) Py_RETURN_NONE;
+  for (i = 0; i < self->n_slots; ++i)
+    if (self->slots[i].check == CHECK_USED && !used_ok(self, i, inputs)) Py_RETURN_NONE;
+  if (self->t != NULL) *self->t = t;
+  if (self->dt != NULL) *self->dt = dt;
+  for (i = 0; i < self->n_slots; ++i) write_slot(&self->slots[i], &inputs[i]);
   code = self->kernel(self->args);
   if (code != 0 && code != self->gated) Py_RETURN_NONE;   /* state unchanged: Python raises it */
   if (self->clock != NULL) *self->clock = t + dt;

@@ -175,7 +175,8 @@ def method(function, owner, default, arguments: tuple, steps: dict | None = None
         return None
     names, required = _parameters(function)
     index = {name: i for i, name in enumerate(names)}
-    steps = None if select is None else {name: s for name, s in steps.items() if s is not None}
+    # names interned: a call's literal ("radar") is then found by identity, not by comparing text
+    steps = None if select is None else {sys.intern(name): s for name, s in steps.items() if s is not None}
     return ext.Method(function.__get__(owner), names, required, index.get("nan", -1),
                       -1 if select is None else index[select], steps, default,
                       tuple(-1 if a is None else index[a] for a in arguments), result)
