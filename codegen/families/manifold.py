@@ -593,7 +593,7 @@ def mekf_update_expr(mf: ManifoldFunctions, ms: ManifoldSymbols, name: str, msym
     t, x, P = state or (s["t"], s["x"], ms.sym["P"])
     m = measurement_input(mf.model, ms, name, msym)
     z_pred = mf.h_inline[name](t, x, s["u"], s["p"], msym["q"])
-    H = ca.diag(m.mask) @ mf.jac_h[name](t, x, s["u"], s["p"], msym["q"])
+    H = masked_rows(m.mask, mf.jac_h[name](t, x, s["u"], s["p"], msym["q"]))
     y = chart_innovation(mf, name, m, z_pred, wrap)
     HPH = linalg.sandwich(H, P)                      # sparse H: structural zeros cost nothing
     if _sequential(mf, name):
@@ -609,6 +609,23 @@ def mekf_update_expr(mf: ManifoldFunctions, ms: ManifoldSymbols, name: str, msym
     ok = ok if state is not None else ok * linalg.psd_flag(P)
     x_new = mf.retract(x, correction)               # multiplicative reset
     return (x_new, P_new, y, S, ok, nis, m.finite, mf.chart.in_domain(correction)), m
+
+
+def masked_rows(mask, J) -> ca.SX:
+    """diag(mask) J with a row of mask 0 exactly 0 even where J is not finite (e.g. the heading's
+    H with no horizontal field: 0 * Inf): J's entries are clamped to ±BIG first (NaN -> -BIG;
+    fmin/fmax, which CasADi does not push into later products as it does an if_else), so a
+    masked component never enters the update, whether it is folded away (``manifold_run_variants``)
+    or not. A used row with a non-finite entry stays refused (S or P then overflows). Sparse."""
+    H = ca.SX(J)
+    rows, cols = J.sparsity().get_triplet()
+    for i, j in zip(rows, cols):
+        H[i, j] = mask[i] * ca.fmin(ca.fmax(J[i, j], -BIG), BIG)
+    return H
+
+
+#: The clamp of :func:`masked_rows` (finite, and far above any derivative a filter can use).
+BIG = 1e300
 
 
 def _sequential(mf: ManifoldFunctions, name: str) -> bool:

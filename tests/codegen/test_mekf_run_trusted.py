@@ -180,3 +180,31 @@ def test_a_variant_pattern_outside_the_measurement_is_refused():
     config = default_config(get_model("marg_ekf")).with_overrides(manifold_run_variants=((7,),))
     with pytest.raises(ConfigError, match="manifold_run_variants"):
         generate("marg_ekf", config)
+
+
+@pytest.mark.parametrize("mask", [[1, 1, 1, 0, 1, 1, 1], [1, 1, 1, 0, 0, 0, 0], [1] * 7])
+def test_a_masked_component_with_a_singular_jacobian_is_ignored_on_both_backends(compiled, mask):
+    """A field with no horizontal part (here: none at all) makes the heading's H row infinite.
+    Masked, that row must not enter the update, on the C step (which calls a variant with the
+    heading folded away) as on the CasADi VM (the general kernel): both accept the step with the
+    same x, P. Used, both refuse it (SYMKF_ERR_NOT_PD). Before manifold.masked_rows the VM
+    refused the masked case (0 * Inf in H)."""
+    from symkf.models import marg_ekf
+    from symkf.runtime import SymkfError, load
+    vm = load("marg_ekf", backend="casadi-vm")
+    x0, P0 = np.r_[0, 0, 0, 1.0, 0, 0, 0], np.diag([0.01] * 3 + [1e-4] * 3)
+    results = []
+    for backend in (compiled, vm):
+        f = backend.filter("mekf", x0, P0, marg_ekf.process_noise_psd())
+        try:
+            code = f.step(0.0, 0.01, np.r_[0.1, 0, 0.995, 0, 0, 0, 0], "marg", q=np.zeros(3),
+                          mask=np.array(mask, float), u=np.zeros(3))
+        except SymkfError as error:
+            code = str(error)
+        results.append((code, f.x.copy(), f.P.copy()))
+    (code_c, x_c, P_c), (code_vm, x_vm, P_vm) = results
+    assert np.array_equal(x_c, x_vm) and np.array_equal(P_c, P_vm)
+    if mask[3]:
+        assert "SYMKF_ERR_NOT_PD" in code_c and "SYMKF_ERR_NOT_PD" in code_vm
+    else:
+        assert code_c == code_vm == 0 and not np.array_equal(x_c, x0)
