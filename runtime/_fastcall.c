@@ -119,6 +119,10 @@ static int checked(const double *v, Py_ssize_t n, int check) {
 
 static void gather(Input *in, const char *buf, Py_ssize_t stride, Py_ssize_t n) {
   Py_ssize_t i;
+  if (stride == (Py_ssize_t) sizeof(double)) {
+    memcpy(in->values, buf, (size_t) n * sizeof(double));
+    return;
+  }
   for (i = 0; i < n; ++i, buf += stride) memcpy(&in->values[i], buf, sizeof(double));
 }
 
@@ -351,6 +355,9 @@ typedef struct {
   int arguments[2 + MAX_SLOTS];  /* per Step argument, the parameter that gives it (-1: None) */
   PyObject *result;          /* returned on success instead of the status code (None: the code) */
   Py_ssize_t calls;          /* calls it took */
+  PyObject *kwnames;         /* the keyword names of the last call with keywords (a call site passes
+                                the same tuple every time) and their parameters: */
+  int kw_index[MAX_PARAMS];
 } Method;
 
 static int parameter(const Method *self, PyObject *name) {
@@ -379,11 +386,17 @@ static PyObject *method_call(PyObject *callable, PyObject *const *args, size_t n
   Py_ssize_t nargs = PyVectorcall_NARGS(nargsf), nkw = kwnames == NULL ? 0 : PyTuple_GET_SIZE(kwnames), i;
   PyObject *values[MAX_PARAMS] = {NULL}, *argv[2 + MAX_SLOTS], *nan, *code;
   Step *step;
-  if (nargs > self->n_params) goto python;
+  if (nargs > self->n_params || nkw > MAX_PARAMS) goto python;
   for (i = 0; i < nargs; ++i) values[i] = args[i];
+  if (nkw > 0 && kwnames != self->kwnames) {           /* a new call site: look its names up once */
+    Py_CLEAR(self->kwnames);
+    for (i = 0; i < nkw; ++i) if ((self->kw_index[i] = parameter(self, PyTuple_GET_ITEM(kwnames, i))) < 0) goto python;
+    Py_INCREF(kwnames);
+    self->kwnames = kwnames;
+  }
   for (i = 0; i < nkw; ++i) {
-    int j = parameter(self, PyTuple_GET_ITEM(kwnames, i));
-    if (j < 0 || values[j] != NULL) goto python;
+    int j = self->kw_index[i];
+    if (values[j] != NULL) goto python;
     values[j] = args[nargs + i];
   }
   for (i = 0; i < self->required; ++i) if (values[i] == NULL) goto python;
@@ -484,6 +497,7 @@ static int method_traverse(Method *self, visitproc visit, void *arg) {
   Py_VISIT(self->steps);
   Py_VISIT(self->default_step);
   Py_VISIT(self->result);
+  Py_VISIT(self->kwnames);
   return 0;
 }
 
@@ -493,6 +507,7 @@ static int method_clear(Method *self) {
   Py_CLEAR(self->steps);
   Py_CLEAR(self->default_step);
   Py_CLEAR(self->result);
+  Py_CLEAR(self->kwnames);
   return 0;
 }
 

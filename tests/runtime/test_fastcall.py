@@ -361,3 +361,26 @@ def test_a_subclass_s_own_step_is_not_replaced(launcher_compiled):
     f = Logged(launcher_compiled, "ekf", X0, P0, Q)
     assert "step" not in f.__dict__
     assert f.step(0.0, 0.05, Z[1], q=STATION) == 0 and f.logged and f.fast_calls == 1
+
+
+def test_the_step_method_reads_each_call_site_s_keywords(launcher_compiled):
+    """Method caches the parameters of the last keyword names it saw (a call site passes the same
+    tuple every time): calls with other names, in another order, or an unknown name in between,
+    still read each argument by its own name."""
+    fast, slow = launcher_compiled.ekf(X0, P0, Q), _python_path(launcher_compiled.ekf(X0, P0, Q))
+    spellings = [dict(q=STATIONS[0], mask=None), dict(mask=None, q=STATIONS[0]), dict(bogus=1),
+                 dict(measurement="radar", q=STATIONS[0]), {"q": STATIONS[0]}]
+    for k in range(1, 11):
+        kwargs = dict(spellings[k % len(spellings)])
+        if "q" in kwargs:
+            kwargs["q"] = STATIONS[k]
+        results = []
+        for f in (fast, slow):
+            try:
+                results.append(f.step(TIMES[k - 1], 0.05, Z[k], **kwargs))
+            except TypeError as error:
+                results.append(str(error))
+        assert results[0] == results[1]
+        for a, b in zip(_state(fast), _state(slow)):
+            assert np.array_equal(a, b)
+    assert fast.step.calls == 8
