@@ -593,7 +593,8 @@ def mekf_update_expr(mf: ManifoldFunctions, ms: ManifoldSymbols, name: str, msym
     t, x, P = state or (s["t"], s["x"], ms.sym["P"])
     m = measurement_input(mf.model, ms, name, msym)
     z_pred = mf.h_inline[name](t, x, s["u"], s["p"], msym["q"])
-    H = masked_rows(m.mask, mf.jac_h[name](t, x, s["u"], s["p"], msym["q"]))
+    folded = {i for pattern in run_variants(mf.model, mf.fns.config, name, msym["mask"].numel()) for i in pattern}
+    H = masked_rows(m.mask, mf.jac_h[name](t, x, s["u"], s["p"], msym["q"]), folded)
     y = chart_innovation(mf, name, m, z_pred, wrap)
     HPH = linalg.sandwich(H, P)                      # sparse H: structural zeros cost nothing
     if _sequential(mf, name):
@@ -611,16 +612,17 @@ def mekf_update_expr(mf: ManifoldFunctions, ms: ManifoldSymbols, name: str, msym
     return (x_new, P_new, y, S, ok, nis, m.finite, mf.chart.in_domain(correction)), m
 
 
-def masked_rows(mask, J) -> ca.SX:
-    """diag(mask) J with a row of mask 0 exactly 0 even where J is not finite (e.g. the heading's
-    H with no horizontal field: 0 * Inf): J's entries are clamped to ±BIG first (NaN -> -BIG;
-    fmin/fmax, which CasADi does not push into later products as it does an if_else), so a
-    masked component never enters the update, whether it is folded away (``manifold_run_variants``)
-    or not. A used row with a non-finite entry stays refused (S or P then overflows). Sparse."""
+def masked_rows(mask, J, guarded=()) -> ca.SX:
+    """diag(mask) J, the rows in ``guarded`` exactly 0 when masked even where J is not finite (e.g.
+    the heading's H with no horizontal field: 0 * Inf): their entries are clamped to ±BIG first
+    (NaN -> -BIG; fmin/fmax, which CasADi does not push into later products as it does an
+    if_else). The guarded rows are those a kernel variant folds away (``manifold_run_variants``),
+    so that the general kernel (VM backend, a run's first or gated steps) ignores a masked row as
+    the variant does; a used row with a non-finite entry stays refused. Sparse."""
     H = ca.SX(J)
     rows, cols = J.sparsity().get_triplet()
     for i, j in zip(rows, cols):
-        H[i, j] = mask[i] * ca.fmin(ca.fmax(J[i, j], -BIG), BIG)
+        H[i, j] = mask[i] * (ca.fmin(ca.fmax(J[i, j], -BIG), BIG) if i in guarded else J[i, j])
     return H
 
 
