@@ -7,6 +7,7 @@ called one step at a time, refused steps and refused runs included."""
 import numpy as np
 import pytest
 
+from kernel_calls import run_in_c, step_by_step
 from symkf.codegen.spec import STATUS_ARGS, STATUS_DOMAIN, STATUS_GATED, STATUS_NONFINITE, STATUS_NOT_PD
 
 STEPS = 600
@@ -61,38 +62,6 @@ def inputs(compiled, recording, bad: str) -> dict[str, np.ndarray]:
     return values
 
 
-def run_in_c(compiled, values):
-    backend = compiled.backend
-    info = backend.kernels[KERNEL]
-    arrays = {name: np.ascontiguousarray(values[name].reshape(STEPS, -1)) if name in info.per_step
-              else np.asfortranarray(values[name].reshape(shape, order="F")) for name, shape in info.inputs}
-    x_hist, P_hist = np.zeros((STEPS, 7)), np.zeros((STEPS, 36))
-    status = np.zeros(STEPS, dtype=np.int32)
-    code = backend.run_function(KERNEL)(STEPS, *[arrays[name].ctypes.data for name, _ in info.inputs],
-                                        x_hist.ctypes.data, P_hist.ctypes.data, status.ctypes.data)
-    return code, status.tolist(), x_hist, P_hist
-
-
-def step_by_step(compiled, kernel: str, values: dict):
-    """The checked (or trusted) kernel through its ``_v`` entry, one call per step, x and P in place."""
-    backend = compiled.backend
-    info = backend.kernels[kernel]
-    buffers = {name: np.zeros(shape, order="F") for name, shape in info.inputs + info.outputs[:-1]}
-    buffers["x"][:, 0], buffers["P"][...] = values["x"], values["P"]
-    call = backend.bind(kernel, buffers)
-    codes, xs, Ps = [], [], []
-    for k in range(STEPS):
-        for name, shape in info.inputs:
-            if name in ("x", "P") or not np.prod(shape):
-                continue
-            value = values[name][k] if name in info.per_step else values[name]
-            buffers[name][...] = np.reshape(value, shape, order="F")
-        codes.append(call())
-        xs.append(buffers["x"][:, 0].copy())
-        Ps.append(buffers["P"].ravel(order="F").copy())
-    return codes, np.array(xs), np.array(Ps)
-
-
 @pytest.fixture(scope="module")
 def kernels():
     from symkf.codegen import generate
@@ -118,8 +87,8 @@ def test_the_run_kernel_names_its_trusted_partner_and_its_variants(kernels):
 @pytest.mark.parametrize("bad", ["none", "z", "R", "P", "x", "gate"])
 def test_run_equals_checked_steps_one_by_one(compiled, recording, bad):
     values = inputs(compiled, recording, bad)
-    code, status, x_hist, P_hist = run_in_c(compiled, values)
-    codes, xs, Ps = step_by_step(compiled, KERNEL, values)
+    code, status, x_hist, P_hist = run_in_c(compiled.backend, KERNEL, values, STEPS)
+    codes, xs, Ps = step_by_step(compiled.backend, KERNEL, values, STEPS)
     assert status == codes
     assert code == next((c for c in codes if c not in (0, STATUS_GATED)), 0)
     assert np.array_equal(x_hist, xs) and np.array_equal(P_hist, Ps)          # bit for bit
@@ -138,11 +107,11 @@ def test_the_trusted_kernel_leaves_out_only_the_tests_of_the_loops_own_state(com
     codes bit for bit; given a state the loop never hands it (P not PSD, R not diagonal), it does
     not refuse it."""
     values = inputs(compiled, recording, "none")
-    assert all(np.array_equal(a, b) for a, b in zip(step_by_step(compiled, KERNEL, values)[1:],
-                                                      step_by_step(compiled, f"{KERNEL}_trusted", values)[1:]))
-    codes, _, _ = step_by_step(compiled, f"{KERNEL}_trusted", inputs(compiled, recording, "R"))
+    assert all(np.array_equal(a, b) for a, b in zip(step_by_step(compiled.backend, KERNEL, values, STEPS)[1:],
+                                                      step_by_step(compiled.backend, f"{KERNEL}_trusted", values, STEPS)[1:]))
+    codes, _, _ = step_by_step(compiled.backend, f"{KERNEL}_trusted", inputs(compiled, recording, "R"), STEPS)
     assert STATUS_ARGS not in codes                  # the checked kernel: ARGS at every step
-    codes, _, _ = step_by_step(compiled, f"{KERNEL}_trusted", inputs(compiled, recording, "P"))
+    codes, _, _ = step_by_step(compiled.backend, f"{KERNEL}_trusted", inputs(compiled, recording, "P"), STEPS)
     assert codes[0] == 0                             # the checked kernel: NOT_PD (the update's own pivots may refuse later)
 
 

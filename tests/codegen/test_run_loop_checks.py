@@ -6,6 +6,7 @@ steps included."""
 import numpy as np
 import pytest
 
+from kernel_calls import run_in_c, step_by_step
 from symkf.models import launcher as L
 from symkf.codegen.spec import STATUS_GATED, STATUS_NONFINITE
 
@@ -43,40 +44,15 @@ def inputs(record, family: str, bad: str) -> dict[str, np.ndarray]:
     return values
 
 
-def step_by_step(backend, kernel: str, values: dict, info) -> tuple[list[int], np.ndarray, np.ndarray]:
-    """The same steps through ``<kernel>_v``, one call each, x and P updated in place (as a Filter
-    binds them): a refused step leaves them as they were."""
-    buffers = {name: np.zeros(shape, order="F") for name, shape in info.inputs + info.outputs[:-1]}
-    buffers["x"][:, 0], buffers["P"][...] = values["x"], values["P"]
-    call = backend.bind(kernel, buffers)
-    codes, xs, Ps = [], [], []
-    for k in range(STEPS):
-        for name, shape in info.inputs:
-            if name in ("x", "P") or not np.prod(shape):
-                continue
-            value = values[name][k] if name in info.per_step else values[name]
-            buffers[name][...] = np.reshape(value, shape, order="F")
-        codes.append(call())
-        xs.append(buffers["x"][:, 0].copy())
-        Ps.append(buffers["P"].ravel(order="F").copy())
-    return codes, np.array(xs), np.array(Ps)
-
-
 @pytest.mark.parametrize("bad", ["none", "z", "mask", "t", "R", "x"])
 @pytest.mark.parametrize("family", ["ekf", "ukf"])
 def test_run_equals_c_steps_one_by_one(launcher_compiled, record, family, bad):
     backend = launcher_compiled.backend
     kernel = f"{family}_step_radar"
-    info = backend.kernels[kernel]
     values = inputs(record, family, bad)
-    arrays = {name: np.ascontiguousarray(values[name].reshape(STEPS, -1)) if name in info.per_step
-              else np.asfortranarray(values[name].reshape(shape, order="F")) for name, shape in info.inputs}
-    x_hist, P_hist = np.zeros((STEPS, 6)), np.zeros((STEPS, 36))
-    status = np.zeros(STEPS, dtype=np.int32)
-    code = backend.run_function(kernel)(STEPS, *[arrays[name].ctypes.data for name, _ in info.inputs],
-                                        x_hist.ctypes.data, P_hist.ctypes.data, status.ctypes.data)
-    codes, xs, Ps = step_by_step(backend, kernel, values, info)
-    assert status.tolist() == codes
+    code, status, x_hist, P_hist = run_in_c(backend, kernel, values, STEPS)
+    codes, xs, Ps = step_by_step(backend, kernel, values, STEPS)
+    assert status == codes
     assert code == next((c for c in codes if c not in (0, STATUS_GATED)), 0)
     assert np.array_equal(x_hist, xs, equal_nan=True) and np.array_equal(P_hist, Ps, equal_nan=True)
     refused = {"none": 0, "z": 1, "mask": 1, "t": 1, "R": STEPS, "x": STEPS}[bad]
