@@ -14,6 +14,8 @@ Paper-specific filters (attitude, MARG) are thin subclasses that name their argu
 """
 from __future__ import annotations
 
+from copy import deepcopy
+
 from dataclasses import dataclass
 
 import numpy as np
@@ -138,6 +140,33 @@ class Filter:
         self.t = 0.0
         self._default = self.spec.measurements[0]
         self._bind()
+
+    # ------------------------------------------------------------------ copies
+    #: What a copy shares with its original: the compiled model and what describes it (read only).
+    _SHARED = frozenset({"spec", "family", "model", "_backend", "kernels", "_dtype", "_scaling"})
+    #: What a copy binds afresh: calls into the C library hold pointers to the original's buffers.
+    _BOUND = frozenset({"step", "_calls", "_fast", "_fast_default", "_fast_sample", "_views", "_initial"})
+
+    def copy(self) -> "Filter":
+        """An independent filter at this filter's state (x, P, t, noises, gates, options): stepping
+        either leaves the other as it was. ``copy.copy`` and ``copy.deepcopy`` give the same."""
+        clone = object.__new__(type(self))
+        clone.__dict__.update({key: value if key in self._SHARED else deepcopy(value)
+                               for key, value in self.__dict__.items() if key not in self._BOUND})
+        clone._views = {name: read_only(clone._buffers[name]) for name in self._views}
+        clone._bind()
+        return clone
+
+    def __copy__(self) -> "Filter":
+        return self.copy()
+
+    def __deepcopy__(self, memo) -> "Filter":
+        return self.copy()
+
+    def __reduce__(self):
+        raise TypeError(f"a {type(self).__name__} holds pointers into its compiled library and cannot be "
+                        "pickled; send the model and the state instead (model name or file, x, P, t) and "
+                        "make the filter again where it is needed")
 
     # ------------------------------------------------------------------ buffers
     def _make_buffers(self) -> None:

@@ -50,7 +50,10 @@ class MargFilter(Filter):
         self.form, self.mode = form, mode
         self.kernel = f"gd_{form}_{mode}"
         super().__init__(compiled, self.kernel, q0, p=[_beta(beta), _alpha(alpha)])
-        self._initial = self._backend.bind(f"gd_initial_{mode}", {**self._buffers, **self.measurements[mode]})
+
+    def _bind(self) -> None:
+        super()._bind()
+        self._initial = self._backend.bind(f"gd_initial_{self.mode}", {**self._buffers, **self.measurements[self.mode]})
 
     def _make_fast_paths(self) -> None:
         """step(dt, gyro, acc, mag) in C: gyro required, a missing 9-axis magnetometer sample is zeros."""
