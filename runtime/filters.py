@@ -15,7 +15,6 @@ Paper-specific filters (attitude, MARG) are thin subclasses that name their argu
 from __future__ import annotations
 
 from copy import deepcopy
-
 from dataclasses import dataclass
 
 import numpy as np
@@ -145,7 +144,7 @@ class Filter:
     #: What a copy shares with its original: the compiled model and what describes it (read only).
     _SHARED = frozenset({"spec", "family", "model", "_backend", "kernels", "_dtype", "_scaling"})
     #: What a copy binds afresh: calls into the C library hold pointers to the original's buffers.
-    _BOUND = frozenset({"step", "_calls", "_fast", "_fast_default", "_fast_sample", "_views", "_initial"})
+    _BOUND = frozenset({"step", "_calls", "_fast", "_fast_default", "_fast_sample", "_views"})
 
     def copy(self) -> "Filter":
         """An independent filter at this filter's state (x, P, t, noises, gates, options): stepping

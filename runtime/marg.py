@@ -51,6 +51,8 @@ class MargFilter(Filter):
         self.kernel = f"gd_{form}_{mode}"
         super().__init__(compiled, self.kernel, q0, p=[_beta(beta), _alpha(alpha)])
 
+    _BOUND = Filter._BOUND | {"_initial"}      # bound by _bind below: a copy binds its own
+
     def _bind(self) -> None:
         super()._bind()
         self._initial = self._backend.bind(f"gd_initial_{self.mode}", {**self._buffers, **self.measurements[self.mode]})

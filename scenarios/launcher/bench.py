@@ -359,26 +359,24 @@ def step_breakdown(counts: dict[str, float], model: str, family: str) -> dict[st
             for row, test in STEP_FUNCTIONS.items()}
 
 
-def time_c_loop(work: Workload, steps: int, instructions: bool = False, directory: Path | None = None) -> dict[str, dict]:
-    """Compile the C loop against build/launcher/ (library flags; or ``directory``, a bundle
-    built elsewhere) and run it for both filters; with ``instructions``, also count instructions
-    per call of each part under callgrind (deterministic, unlike wall-clock time on a shared machine)."""
-    if directory is None:
-        directory = build_model("launcher").directory
+def c_loop_instructions(work: Workload) -> dict[str, dict]:
+    """Instructions per call of each part of both filters' step, counted under callgrind
+    (deterministic, unlike wall-clock time on a shared machine) with the C loop compiled against
+    build/launcher/ with the library's flags; {} per filter without valgrind."""
+    directory = build_model("launcher").directory
+    out = {family: {} for family in FILTERS}
+    if not shutil.which("valgrind"):
+        return out
     with tempfile.TemporaryDirectory() as tmp:
         exe = callgrind.compile_driver(directory, C_LOOP, Path(tmp) / "c_loop", defines=("-D_POSIX_C_SOURCE=199309L",))
         stdin = _c_loop_input(work)
-        out = {}
         for family in FILTERS:
-            out[family] = {"us_per_step": _c_loop_process(exe, stdin, family, steps)}
-            if instructions and shutil.which("valgrind"):
-                counts = {part: _instructions_per_step(exe, family, part, stdin, Path(tmp)) for part in PARTS}
-                parts = {part: total for part, (total, _) in counts.items()}
-                for row, (part, functions) in SELF_COSTS.items():
-                    parts[row] = sum(counts[part][1].get(f.format(m="launcher", f=family), 0) for f in functions)
-                parts.update(step_breakdown(counts["step"][1], "launcher", family))
-                out[family]["instructions_per_step"] = parts["step"]
-                out[family]["instructions_by_part"] = parts
+            counts = {part: _instructions_per_step(exe, family, part, stdin, Path(tmp)) for part in PARTS}
+            parts = {part: total for part, (total, _) in counts.items()}
+            for row, (part, functions) in SELF_COSTS.items():
+                parts[row] = sum(counts[part][1].get(f.format(m="launcher", f=family), 0) for f in functions)
+            parts.update(step_breakdown(counts["step"][1], "launcher", family))
+            out[family] = {"instructions_per_step": parts["step"], "instructions_by_part": parts}
     return out
 
 
@@ -427,7 +425,7 @@ def measure(steps: int, reference_steps: int, campaign: bool, instructions: bool
             scheduler: str | None = None) -> dict:
     model = load("launcher", backend="compiled")
     work = Workload(steps)
-    c_loop = time_c_loop(work, steps, instructions) if instructions else {family: {} for family in FILTERS}
+    c_loop = c_loop_instructions(work) if instructions else {family: {} for family in FILTERS}
     interleaved, spread = time_steps_and_c_loop(model, work)
     rows = []
     for family in FILTERS:

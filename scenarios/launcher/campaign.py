@@ -65,13 +65,6 @@ PRESETS = {
                    "kappa": 0.0, "ekf_q_scale": 1.0, "ukf_q_scale": 1.0, "stations": "spherical"}},
 }
 TUNING = PRESETS["correct"]["tuning"]
-#: The campaign build: codegen options added to a preset's (``Campaign(build=...)``); none, i.e. the
-#: model's default build (models/launcher.py). Measured for issue 12 (default campaign, interleaved,
-#: twice each, 2-core VM): the whole library at -O3 (``{"optimization": "-O3 -fno-math-errno"}``,
-#: IEEE only, per-run results bit-identical, tested) cut the compiled runs 34.3 -> 32.2 CPU-s
-#: against 080f4df's default build, but 31.9 vs 31.7 against c0fe573's (glue units at -O3, the
-#: model's functions at -O1 -fno-thread-jumps), for 4.4 s more compiler CPU per cold build.
-CAMPAIGN_BUILD: dict = {}
 FILTERS = ("ekf", "ukf")
 EVENTS = tuple(get_model("launcher").events)     # Table 2's switches (s), declared by the model
 NEES_STRIDE = 5          # NEES every 5th step (0.25 s at 20 Hz): plotted, not tabulated
@@ -249,7 +242,12 @@ class Campaign:
 
     ``scheduler``: None (local threads, ``workers`` of them), ``"local:N"`` (a Dask LocalCluster)
     or a Dask scheduler address; see :mod:`symkf.scenarios.campaign`. ``build``: codegen options
-    added to the preset's (default :data:`CAMPAIGN_BUILD`; ``{}`` runs the model's default build).
+    added to the preset's (default none: the model's default build, models/launcher.py). Measured
+    for issue 12 (default campaign, interleaved, twice each, 2-core VM): the whole library at -O3
+    (``{"optimization": "-O3 -fno-math-errno"}``, IEEE only, per-run results bit-identical, tested)
+    cut the compiled runs 34.3 -> 32.2 CPU-s against 080f4df's default build, but 31.9 vs 31.7
+    against c0fe573's (glue units at -O3, the model's functions at -O1 -fno-thread-jumps), for 4.4 s
+    more compiler CPU per cold build: so the default build it is.
     """
 
     def __init__(self, runs: int, seed: int, rates=L.RADAR_RATES_HZ, duration: float = L.T_INSERTION,
@@ -263,7 +261,7 @@ class Campaign:
         self.cases = [Case(rate, init) for rate in rates for init in ("small", "large")]
         self.workers, self.scheduler = workers, scheduler
         self.progress = progress or (lambda done, total: None)
-        self.codegen = {**PRESETS[preset]["codegen"], **(CAMPAIGN_BUILD if build is None else build)}
+        self.codegen = {**PRESETS[preset]["codegen"], **(build or {})}
         self.model_key = model_key("launcher", **self.codegen)     # one library per configuration
         self.tuning = {**PRESETS[preset]["tuning"], **(tuning or {})}
         self.stats = None
