@@ -106,7 +106,7 @@ class Kernel:
         return {"name": self.name, "doc": self.doc,
                 "inputs": [a.as_dict() for a in self.inputs],
                 "outputs": [a.as_dict() for a in self.outputs],
-                "carried": list(self.carried), "per_step": list(self.per_step),
+                "carried": list(self.carried), "per_step": list(self.per_step), "trusted": self.trusted,
                 "work": {"arg": f.sz_arg(), "res": f.sz_res(), "iw": f.sz_iw(), "w": f.sz_w()},
                 "instructions": f.n_instructions()}
 

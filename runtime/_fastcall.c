@@ -16,6 +16,16 @@
  *   3. calls the kernel; on success (status 0 or gated) sets the clock to t + dt, counts the
  *      call (`Step.calls`) and returns the status code (an int).
  *
+ * A Step may also have a trusted kernel (Step.trusted; the C run loop's `trusted` partner of the
+ * step, codegen/spec.py Kernel.trusted): the same x, P and codes without the checks that the
+ * filter's own state cannot fail (|q| = 1, P PSD, R diagonal) and without the diagnostics y, S.
+ * It is called instead once a step has succeeded and nothing was written from Python since (the
+ * filter's `own` flag: set here, cleared by every write of the Python Filter). Before it runs,
+ * the step's carried state is read; after it succeeded that state and the step's per-step inputs
+ * are kept in the filter's replay buffers and the measurement's `stale` flag is set, so that y and
+ * S, when asked for, are computed by the checked step from exactly those inputs
+ * (symkf/runtime/filters.py). A failed step keeps nothing: the replay stays the last success's.
+ *
  * Whatever it does not accept it returns None for, having written nothing: the caller then runs
  * the Python contract (symkf/runtime/contract.py), which accepts or refuses it with a clear error.
  * A kernel failure (x and P unchanged) also returns None, with the clock and count unchanged:
@@ -39,6 +49,8 @@
 
 #define MAX_SLOTS 8
 #define MAX_SIZE 64   /* entries per array argument (per-call vectors are small) */
+#define MAX_SAVES 16
+#define MAX_SAVED 1024  /* carried entries a trusted step reads before its call (x, P) */
 
 /* What a slot does with None: */
 enum { NONE_KEEP = 0,     /* keep the buffer (an input held from the last call; or size 0) */
@@ -61,6 +73,15 @@ typedef struct {
   int check;
 } Slot;
 
+/* One buffer a trusted step keeps: n entries from `from` (a bound buffer) into `into` (its replay);
+   `carried`: the kernel overwrites `from` (x, P), so it is read before the call. */
+typedef struct {
+  const double *from;
+  double *into;
+  Py_ssize_t n;
+  int carried;
+} Save;
+
 typedef struct {
   PyObject_HEAD
   vectorcallfunc vectorcall;
@@ -73,6 +94,13 @@ typedef struct {
   int mask_slot;        /* index of the CHECK_MASK slot, -1 if none */
   Py_ssize_t calls;     /* calls that took this path and succeeded */
   Slot slots[MAX_SLOTS];
+  kernel_v trusted;     /* NULL: none (see the top of this file) */
+  double *const *trusted_args;
+  double *own;          /* the filter's flag: 1 once a step succeeded, 0 after any write from Python */
+  double *stale;        /* the measurement's flag: 1 while its y, S are left to the replay */
+  int n_saves, n_carried;   /* the carried saves first */
+  Save saves[MAX_SAVES];
+  Py_ssize_t trusted_calls;
   PyObject *keep_alive;
 } Step;
 
@@ -203,6 +231,25 @@ static void write_slot(const Slot *slot, const Input *in) {
   }
 }
 
+/* The trusted kernel on the bound buffers; on success the step's inputs are kept for the replay of
+   its diagnostics (on failure nothing is: the replay buffers keep the last successful step's). */
+static int trusted_step(Step *self) {
+  double carried[MAX_SAVED], *at = carried;
+  const Save *save, *inputs = self->saves + self->n_carried, *end = self->saves + self->n_saves;
+  Py_ssize_t j;
+  int code;
+  for (save = self->saves; save < inputs; at += save->n, ++save) memcpy(at, save->from, (size_t) save->n * sizeof(double));
+  code = self->trusted(self->trusted_args);
+  if (code != 0 && code != self->gated) return code;
+  for (save = self->saves, at = carried; save < inputs; at += save->n, ++save)
+    memcpy(save->into, at, (size_t) save->n * sizeof(double));
+  for (; save < end; ++save)                  /* a few entries each (t, dt, z, ...): no memcpy call */
+    for (j = 0; j < save->n; ++j) save->into[j] = save->from[j];
+  *self->stale = 1.0;
+  ++self->trusted_calls;
+  return code;
+}
+
 /* The checks, copies and kernel call of one step (argv: t, dt, then one object per slot): the
    status code (a new int), or None having written nothing (see the top of this file). */
 static PyObject *step_run(Step *self, PyObject *const *argv) {
@@ -218,8 +265,12 @@ static PyObject *step_run(Step *self, PyObject *const *argv) {
   if (self->t != NULL) *self->t = t;
   if (self->dt != NULL) *self->dt = dt;
   for (i = 0; i < self->n_slots; ++i) write_slot(&self->slots[i], &inputs[i]);
-  code = self->kernel(self->args);
+  code = self->trusted != NULL && *self->own != 0.0 ? trusted_step(self) : self->kernel(self->args);
   if (code != 0 && code != self->gated) Py_RETURN_NONE;   /* state unchanged: Python raises it */
+  if (self->trusted != NULL && *self->own == 0.0) {         /* a checked step: y, S are its own */
+    *self->own = 1.0;
+    *self->stale = 0.0;
+  }
   if (self->clock != NULL) *self->clock = t + dt;
   ++self->calls;
   return PyLong_FromLong(code);
@@ -239,11 +290,47 @@ static void *address(PyObject *o) {
   return o == Py_None ? NULL : PyLong_AsVoidPtr(o);
 }
 
-/* Step(kernel, args, t, dt, clock, slots, gated, keep_alive): addresses as ints (t, dt, clock may
-   be None); slots a tuple of (address, size, if_none, check); gated the status code of a gated
-   update; keep_alive holds the buffers those addresses point into. */
+/* The optional trusted part of a Step: None, or (kernel, args, own, stale, saves), addresses as
+   ints, saves a tuple of (from, into, n, carried). 1 on success, 0 with an exception set. */
+static int set_trusted(Step *self, PyObject *trusted) {
+  PyObject *kernel, *args, *own, *stale, *saves;
+  Py_ssize_t i, total = 0;
+  if (trusted == Py_None) return 1;
+  if (!PyArg_ParseTuple(trusted, "OOOOO!", &kernel, &args, &own, &stale, &PyTuple_Type, &saves)) return 0;
+  if (PyTuple_GET_SIZE(saves) > MAX_SAVES) {
+    PyErr_Format(PyExc_ValueError, "Step: at most %d saved buffers", MAX_SAVES);
+    return 0;
+  }
+  self->trusted = (kernel_v) address(kernel);
+  self->trusted_args = (double *const *) address(args);
+  self->own = (double *) address(own);
+  self->stale = (double *) address(stale);
+  self->n_saves = (int) PyTuple_GET_SIZE(saves);
+  for (i = 0; i < self->n_saves; ++i) {
+    PyObject *from, *into;
+    Save *save = &self->saves[i];
+    if (!PyArg_ParseTuple(PyTuple_GET_ITEM(saves, i), "OOni", &from, &into, &save->n, &save->carried)) return 0;
+    save->from = (const double *) address(from);
+    save->into = (double *) address(into);
+    total += save->carried ? save->n : 0;
+    self->n_carried += save->carried != 0;
+    if (save->n < 0 || save->from == NULL || save->into == NULL || (save->carried && self->n_carried <= i)) break;
+  }
+  if (PyErr_Occurred()) return 0;
+  if (i < self->n_saves || total > MAX_SAVED || self->trusted == NULL || self->trusted_args == NULL ||
+      self->own == NULL || self->stale == NULL) {
+    PyErr_Format(PyExc_ValueError, "Step: bad trusted part (kernel, args, own, stale addresses; saves of "
+                 "(from, into, n >= 0, carried), the carried first, %d carried entries in all at most)", MAX_SAVED);
+    return 0;
+  }
+  return 1;
+}
+
+/* Step(kernel, args, t, dt, clock, slots, gated, keep_alive[, trusted]): addresses as ints (t, dt,
+   clock may be None); slots a tuple of (address, size, if_none, check); gated the status code of a
+   gated update; keep_alive holds the buffers those addresses point into; trusted: set_trusted. */
 static PyObject *step_new(PyTypeObject *type, PyObject *a, PyObject *kw) {
-  PyObject *kernel, *args, *t, *dt, *clock, *slots, *keep_alive;
+  PyObject *kernel, *args, *t, *dt, *clock, *slots, *keep_alive, *trusted = Py_None;
   int gated;
   Step *self;
   Py_ssize_t i;
@@ -251,8 +338,8 @@ static PyObject *step_new(PyTypeObject *type, PyObject *a, PyObject *kw) {
     PyErr_SetString(PyExc_TypeError, "Step takes positional arguments only");
     return NULL;
   }
-  if (!PyArg_ParseTuple(a, "OOOOOO!iO", &kernel, &args, &t, &dt, &clock, &PyTuple_Type, &slots, &gated,
-                        &keep_alive)) return NULL;
+  if (!PyArg_ParseTuple(a, "OOOOOO!iO|O", &kernel, &args, &t, &dt, &clock, &PyTuple_Type, &slots, &gated,
+                        &keep_alive, &trusted)) return NULL;
   if (PyTuple_GET_SIZE(slots) > MAX_SLOTS) {
     PyErr_Format(PyExc_ValueError, "Step: at most %d array arguments", MAX_SLOTS);
     return NULL;
@@ -281,6 +368,7 @@ static PyObject *step_new(PyTypeObject *type, PyObject *a, PyObject *kw) {
     }
     if (s->check == CHECK_MASK) self->mask_slot = (int) i;
   }
+  if (!PyErr_Occurred()) set_trusted(self, trusted);
   if (PyErr_Occurred() || self->kernel == NULL || self->args == NULL) {
     if (!PyErr_Occurred()) PyErr_SetString(PyExc_ValueError, "Step: kernel and args addresses are required");
     Py_DECREF(self);
@@ -309,13 +397,14 @@ static void step_dealloc(Step *self) {
 
 static PyMemberDef step_members[] = {
   {"calls", T_PYSSIZET, offsetof(Step, calls), READONLY, "calls that took the fast path and succeeded"},
+  {"trusted_calls", T_PYSSIZET, offsetof(Step, trusted_calls), READONLY, "of those, calls of the trusted kernel"},
   {NULL, 0, 0, 0, NULL},
 };
 
 static PyTypeObject StepType = {
   PyVarObject_HEAD_INIT(NULL, 0)
   .tp_name = "_symkf_fastcall.Step",
-  .tp_doc = "One bound filter step: Step(kernel, args, t, dt, clock, slots, gated, keep_alive)(t, dt, *arrays) -> int | None",
+  .tp_doc = "One bound filter step: Step(kernel, args, t, dt, clock, slots, gated, keep_alive[, trusted])(t, dt, *arrays) -> int | None",
   .tp_members = step_members,
   .tp_basicsize = sizeof(Step),
   .tp_flags = Py_TPFLAGS_DEFAULT | Py_TPFLAGS_HAVE_GC | Py_TPFLAGS_HAVE_VECTORCALL,
@@ -350,6 +439,9 @@ typedef struct {
   int nan_index;             /* the `nan` parameter (absent or "raise"), -1 if none */
   int select_index;          /* the measurement's name (absent or None: the default Step), -1 if none */
   PyObject *steps;           /* dict: measurement -> Step (select_index >= 0), else None */
+  PyObject *last_name;       /* the last name a call selected a Step by (held, so that its address is
+                                not reused) and that Step (borrowed from steps) */
+  PyObject *last_step;
   PyObject *default_step;    /* a Step */
   int n_args;                /* 2 + the Steps' slot count */
   int arguments[2 + MAX_SLOTS];  /* per Step argument, the parameter that gives it (-1: None) */
@@ -370,14 +462,21 @@ static int parameter(const Method *self, PyObject *name) {
 }
 
 /* The Step a call selects (borrowed), or NULL: the Python method decides. */
-static Step *selected(const Method *self, PyObject *const *values) {
+static Step *selected(Method *self, PyObject *const *values) {
   PyObject *name, *step;
   if (self->select_index < 0 || values[self->select_index] == NULL || values[self->select_index] == Py_None)
     return (Step *) self->default_step;
   name = values[self->select_index];
+  if (name == self->last_name) return (Step *) self->last_step;      /* a call site's literal: the same object */
   if (!PyUnicode_CheckExact(name)) return NULL;
   step = PyDict_GetItemWithError(self->steps, name);
-  if (step == NULL) PyErr_Clear();
+  if (step == NULL) {
+    PyErr_Clear();
+    return NULL;
+  }
+  Py_INCREF(name);
+  Py_XSETREF(self->last_name, name);
+  self->last_step = step;
   return (Step *) step;
 }
 
@@ -498,6 +597,7 @@ static int method_traverse(Method *self, visitproc visit, void *arg) {
   Py_VISIT(self->default_step);
   Py_VISIT(self->result);
   Py_VISIT(self->kwnames);
+  Py_VISIT(self->last_name);
   return 0;
 }
 
@@ -508,6 +608,7 @@ static int method_clear(Method *self) {
   Py_CLEAR(self->default_step);
   Py_CLEAR(self->result);
   Py_CLEAR(self->kwnames);
+  Py_CLEAR(self->last_name);
   return 0;
 }
 
@@ -565,6 +666,8 @@ PyMODINIT_FUNC PyInit__symkf_fastcall(void) {
     return NULL;
   }
   PyModule_AddIntConstant(m, "MAX_SIZE", MAX_SIZE);
+  PyModule_AddIntConstant(m, "MAX_SAVES", MAX_SAVES);
+  PyModule_AddIntConstant(m, "MAX_SAVED", MAX_SAVED);
   PyModule_AddIntConstant(m, "NONE_KEEP", NONE_KEEP);
   PyModule_AddIntConstant(m, "NONE_ONES", NONE_ONES);
   PyModule_AddIntConstant(m, "NONE_ZEROS", NONE_ZEROS);

@@ -24,7 +24,6 @@ import numpy as np
 
 from symkf.models import attitude as model
 from . import contract
-from .contract import read_only
 from .filters import Filter, RunResult
 from .reference import (DEFAULT_KAPPA, KINDS, NORM_TOLERANCE, ReferenceAttitudeFilter, _initial_state,  # noqa: F401
                         eigen_mean, unit_quaternion)
@@ -68,10 +67,8 @@ class AttitudeFilter(Filter):
         self._fast_sample = self._fast_step(self.MEASUREMENT, ("z", "mask", "u"))
         self._install_step(AttitudeFilter.step, self._fast_sample, (None, "dt", "q_s", None, "omega_g"))
 
-    y = property(lambda self: read_only(self.measurements["star_tracker"]["y"]),
-                 doc="Innovation δp_s of the last update (eq 50).")
-    S = property(lambda self: read_only(self.measurements["star_tracker"]["S"]),
-                 doc="Innovation covariance P^yy of the last update.")
+    y = property(lambda self: Filter.y(self, self.MEASUREMENT), doc="Innovation δp_s of the last update (eq 50).")
+    S = property(lambda self: Filter.S(self, self.MEASUREMENT), doc="Innovation covariance P^yy of the last update.")
     q = property(lambda self: self.x[0:4], doc="Attitude quaternion estimate (scalar-last).")
     b = property(lambda self: self.x[4:7], doc="Gyro bias estimate, rad/s.")
 

@@ -44,18 +44,19 @@ class KernelInfo:
     outputs: tuple[tuple[str, tuple[int, int]], ...]
     carried: tuple[str, ...]
     per_step: tuple[str, ...]
+    trusted: str = ""           # the run loop's trusted partner (codegen/spec.py Kernel.trusted)
 
     @classmethod
     def from_manifest(cls, entry: dict) -> "KernelInfo":
         def args(items):
             return tuple((a["name"], tuple(a["shape"])) for a in items)
         return cls(entry["name"], args(entry["inputs"]), args(entry["outputs"]),
-                   tuple(entry["carried"]), tuple(entry["per_step"]))
+                   tuple(entry["carried"]), tuple(entry["per_step"]), entry.get("trusted", ""))
 
     @classmethod
     def from_kernel(cls, kernel: Kernel) -> "KernelInfo":
         return cls(kernel.name, tuple((a.name, a.shape) for a in kernel.inputs),
-                   tuple((a.name, a.shape) for a in kernel.outputs), kernel.carried, kernel.per_step)
+                   tuple((a.name, a.shape) for a in kernel.outputs), kernel.carried, kernel.per_step, kernel.trusted)
 
     def pointer_names(self) -> list[tuple[str, bool]]:
         """(buffer name, is_output) in the C argument order (status excluded)."""

@@ -115,7 +115,7 @@ def _import(library: Path):
     return module
 
 
-def step(bound, t, dt, clock, slots: list[tuple], keep_alive):
+def step(bound, t, dt, clock, slots: list[tuple], keep_alive, trusted: tuple | None = None):
     """A ``Step`` over a bound compiled kernel, or None without the extension or a C kernel.
 
     Args:
@@ -129,6 +129,12 @@ def step(bound, t, dt, clock, slots: list[tuple], keep_alive):
             mask slot uses the component: a measurement z, whose masked components the kernel
             never reads).
         keep_alive: what owns the buffers (held by the Step).
+        trusted: ``(bound_trusted, own, stale, saves)`` or None: the kernel called instead once a
+            step succeeded while ``own[0]`` is 1 (a bound call over the same buffers), the filter's
+            and the measurement's one-entry flags, and ``saves``, ``(bound, replay, carried)``
+            per buffer a trusted step keeps for the replay of its diagnostics (``carried``: one
+            the kernel writes, x or P; see ``_fastcall.c``). Left out (the Step checks every
+            step) where a buffer is not float64.
 
     Calling the Step returns the status code (0 or SYMKF_GATED), or None having written nothing
     (or, after a kernel failure, having written only the kernel's input buffers): the caller's
@@ -147,7 +153,25 @@ def step(bound, t, dt, clock, slots: list[tuple], keep_alive):
     table = tuple((None if b is None else b.ctypes.data, 0 if b is None else b.size, if_none[n], check[c])
                   for b, n, c in slots)
     address = [None if b is None else b.ctypes.data for b in (t, dt, clock)]
-    return ext.Step(bound.c_address, bound.c_args, *address, table, STATUS_GATED, (keep_alive, bound, clock))
+    part = _trusted_part(ext, trusted)
+    return ext.Step(bound.c_address, bound.c_args, *address, table, STATUS_GATED, (keep_alive, bound, clock, trusted),
+                    part)
+
+
+def _trusted_part(ext, trusted: tuple | None):
+    """The Step's trusted part (addresses) of :func:`step`'s ``trusted``, or None."""
+    if trusted is None:
+        return None
+    bound, own, stale, saves = trusted
+    buffers = [own, stale] + [array for pair in saves for array in pair[:2]]
+    if (getattr(bound, "c_address", None) is None or len(saves) > ext.MAX_SAVES
+            or sum(a.size for a, _, carried in saves if carried) > ext.MAX_SAVED
+            or any(b.dtype != float or not (b.flags.c_contiguous or b.flags.f_contiguous) for b in buffers)
+            or any(a.shape != b.shape or a.strides != b.strides for a, b, _ in saves)):
+        return None
+    table = tuple((a.ctypes.data, b.ctypes.data, a.size, int(carried))
+                  for a, b, carried in sorted(saves, key=lambda save: not save[2]))     # the carried first
+    return bound.c_address, bound.c_args, own.ctypes.data, stale.ctypes.data, table
 
 
 def method(function, owner, default, arguments: tuple, steps: dict | None = None, select: str | None = None,

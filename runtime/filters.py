@@ -10,6 +10,14 @@ and exposes ``x``, ``P`` and the diagnostics ``y``/``S`` as read-only views, Fil
 
 Every call enforces :mod:`symkf.runtime.contract` before it writes a buffer; the kernels write
 x and P only on success, so when anything raises, x, P and t are bit-identical to before.
+
+Where a step kernel has a trusted partner (the kernel its C run loop iterates once a step has
+succeeded, ``Kernel.trusted``: an MEKF's step without the checks of |q| = 1, P PSD and R diagonal
+and without y, S), the fast path of :meth:`Filter.step` calls that partner while x and P are the
+filter's own (a step succeeded and nothing was written from Python since): the same x, P and codes.
+It keeps the step's inputs (a :class:`Replay`), and :meth:`Filter.y` / :meth:`Filter.S` compute
+the diagnostics from them when asked, with the checked step kernel: bit-identical to a checked
+step's. Every write from Python first does that replay and makes the next step a checked one.
 Paper-specific filters (attitude, MARG) are thin subclasses that name their arguments.
 """
 from __future__ import annotations
@@ -63,6 +71,16 @@ class StateScaling:
 
     def P_from_kernel(self, P: np.ndarray) -> np.ndarray:
         return np.asarray(P, dtype=float) * self.outer
+
+
+@dataclass
+class Replay:
+    """What a trusted step (module docstring) leaves for one measurement's diagnostics: that step's
+    carried state and per-step inputs, kept by the C fast path, and whether its y, S are still to
+    be computed from them (``stale[0]`` = 1, set in C)."""
+
+    buffers: dict[str, np.ndarray]
+    stale: np.ndarray
 
 
 @dataclass
@@ -144,7 +162,8 @@ class Filter:
     #: What a copy shares with its original: the compiled model and what describes it (read only).
     _SHARED = frozenset({"spec", "family", "model", "_backend", "kernels", "_dtype", "_scaling"})
     #: What a copy binds afresh: calls into the C library hold pointers to the original's buffers.
-    _BOUND = frozenset({"step", "_calls", "_fast", "_fast_default", "_fast_sample", "_views"})
+    _BOUND = frozenset({"step", "_calls", "_fast", "_fast_default", "_fast_sample", "_views", "_replay_calls",
+                        "_trusted_calls"})
 
     def copy(self) -> "Filter":
         """An independent filter at this filter's state (x, P, t, noises, gates, options): stepping
@@ -183,6 +202,27 @@ class Filter:
         for buffers in self.measurements.values():
             if "mask" in buffers:
                 buffers["mask"][:] = 1.0
+        self._make_replays()
+
+    def _make_replays(self) -> None:
+        """A :class:`Replay` per measurement whose step kernel has a trusted partner, and the flag
+        the fast path sets once a step has succeeded (``_own_state``; 0 after any write from Python)."""
+        self._own_state = np.zeros(1)
+        self._replays: dict[str, Replay] = {}
+        for name, kernel in self.spec.step.items():
+            if self._trusted_kernel(name):
+                live = {**self._buffers, **self.measurements[name]}
+                kept = [n for n in self.spec.state + self.kernels[kernel].per_step if live[n].size]
+                self._replays[name] = Replay({n: live[n].copy(order="K") for n in kept}, np.zeros(1))
+
+    def _trusted_kernel(self, name: str) -> str:
+        """The trusted partner of the run kernel of measurement ``name`` if it takes the step
+        kernel's inputs and writes some of its outputs (x, P, status), else ""."""
+        kernels, step = self._backend.kernels, self.kernels[self.spec.step[name]]
+        run = kernels.get(self.spec.run.get(name, ""))
+        trusted = kernels.get(run.trusted) if run is not None and run.trusted else None
+        fits = trusted is not None and trusted.inputs == step.inputs and set(trusted.outputs) <= set(step.outputs)
+        return trusted.name if fits else ""
 
     def _kernel_roles(self) -> list[tuple[str, str | None]]:
         # a prediction that reads a measurement input (the augmented UKF's R) reads the first one's
@@ -217,6 +257,11 @@ class Filter:
         for kernel, measurement in self._kernel_roles():
             buffers = self._buffers if measurement is None else {**self._buffers, **self.measurements[measurement]}
             self._calls[kernel] = self._backend.bind(kernel, buffers)
+        self._trusted_calls, self._replay_calls = {}, {}
+        for name, replay in self._replays.items():
+            live = {**self._buffers, **self.measurements[name]}
+            self._trusted_calls[name] = self._backend.bind(self._trusted_kernel(name), live)
+            self._replay_calls[name] = self._backend.bind(self.spec.step[name], {**live, **replay.buffers})
         self._make_fast_paths()
 
     def _make_fast_paths(self) -> None:
@@ -278,12 +323,18 @@ class Filter:
             else:
                 required = "decline" if buffer.size else "keep"
                 slots.append((buffer, self.FAST_NONE.get(key, required), self.FAST_CHECK.get(key, "finite")))
+        trusted = None
+        if name in self._replays:
+            replay, live = self._replays[name], {**self._buffers, **buffers}
+            trusted = (self._trusted_calls[name], self._own_state, replay.stale,
+                       [(live[n], kept, n in self.spec.state) for n, kept in replay.buffers.items()])
         return fastcall.step(self._calls[self.spec.step[name]], self._buffers.get("t"), self._buffers.get("dt"),
-                             self._clock, slots, (self._buffers, buffers))
+                             self._clock, slots, (self._buffers, buffers), trusted)
 
     def kernel_buffer(self, name: str, measurement: str | None = None) -> np.ndarray:
         """The writable buffer a bound kernel reads (no checks: for benchmarks that restore the
         state between timed kernel calls)."""
+        self._before_write()
         return self._buffers[name] if name in self._buffers else self._measurement(measurement)[name]
 
     def kernel_call(self, kind: str, measurement: str | None = None):
@@ -337,7 +388,31 @@ class Filter:
 
     def _write_state(self, name: str, value: np.ndarray) -> None:
         """Write a checked value; for a float build refuse one that float cannot hold (buffer unchanged)."""
-        self._buffers[name][:] = self._fits(name, value, " after scaling" if self._scaling is not None else "")
+        value = self._fits(name, value, " after scaling" if self._scaling is not None else "")
+        self._before_write()
+        self._buffers[name][:] = value
+
+    def _before_write(self) -> None:
+        """Before anything is written from Python: the diagnostics trusted steps left (they read
+        those steps' inputs and the constants about to change), and the next fast step is a
+        checked one (the trusted kernel relies on a state only steps wrote)."""
+        for name in self._replays:
+            self._replay(name)
+        self._own_state[0] = 0.0
+
+    def _replay(self, name: str) -> None:
+        """y, S of the last step with measurement ``name`` if a trusted step left them: the checked
+        step kernel on the inputs it kept (the same expressions: a checked step's y, S bit for bit;
+        its x, P land in the replay's buffers). NaN if that kernel refuses what the trusted one
+        took: a P off the PSD test after a successful step (none seen; codegen/families/manifold.py
+        ``mekf_run_kernels``)."""
+        replay = self._replays.get(name)
+        if replay is None or not replay.stale[0]:
+            return
+        replay.stale[0] = 0.0
+        if self._replay_calls[name]() not in (0, STATUS_GATED):
+            for key in self.spec.diagnostics:
+                self.measurements[name][key][...] = np.nan
 
     def _fits(self, name: str, value, where: str = ""):
         """``value`` unchanged if the buffers' element type holds it; for a float build, ValueError
@@ -360,7 +435,9 @@ class Filter:
 
     @p.setter
     def p(self, value) -> None:
-        self._buffers["p"][:] = self._fits("p", contract.finite_array("p", value, self._buffers["p"].shape))
+        value = self._fits("p", contract.finite_array("p", value, self._buffers["p"].shape))
+        self._before_write()
+        self._buffers["p"][:] = value
 
     def R(self, measurement: str | None = None) -> np.ndarray:
         return read_only(self._measurement(measurement)["R"])
@@ -369,7 +446,9 @@ class Filter:
         """Measurement noise covariance (symmetric positive definite)."""
         buffers = self._measurement(measurement)
         name = f"R[{measurement}]"
-        buffers["R"][:] = self._fits(name, covariance(name, value, buffers["R"].shape[0], definite=True))
+        value = self._fits(name, covariance(name, value, buffers["R"].shape[0], definite=True))
+        self._before_write()
+        buffers["R"][:] = value
 
     def set_gate(self, measurement: str, probability: float | None = None, threshold: float | None = None) -> None:
         """Chi-square innovation gate: an update whose y^T S^-1 y exceeds the ``probability``
@@ -391,15 +470,21 @@ class Filter:
             if threshold <= 0:
                 raise ValueError(f"threshold: must be > 0, got {threshold}")
             gate[:] = threshold
+        self._before_write()
         buffers["gate"][:] = gate
 
     def y(self, measurement: str | None = None) -> np.ndarray:
         """Innovation of the last update with ``measurement``."""
-        return read_only(self._measurement(measurement)["y"])
+        return read_only(self._diagnostic("y", measurement))
 
     def S(self, measurement: str | None = None) -> np.ndarray:
         """Innovation covariance of the last update with ``measurement``."""
-        return read_only(self._measurement(measurement)["S"])
+        return read_only(self._diagnostic("S", measurement))
+
+    def _diagnostic(self, key: str, measurement: str | None) -> np.ndarray:
+        buffers = self._measurement(measurement)
+        self._replay(self._default if measurement is None else measurement)
+        return buffers[key]
 
     def _measurement(self, name: str | None) -> dict[str, np.ndarray]:
         name = self._default if name is None else name
@@ -508,6 +593,7 @@ class Filter:
         return values
 
     def _write_measurement(self, name: str, values: dict) -> None:
+        self._before_write()
         buffers = self.measurements[name]
         for key, value in values.items():
             if key == "mask":
@@ -520,6 +606,7 @@ class Filter:
         the measurement's values are written after this (they are already checked)."""
         self._fits("t", t)
         self._fits("dt", dt if dt is not None else 0.0)
+        self._before_write()
         if "t" in self._buffers:
             self._buffers["t"][0] = t
         if dt is not None:
@@ -636,6 +723,7 @@ class Filter:
                   else np.asfortranarray(constants[n], dtype=dtype) for n, _ in info.inputs]
         histories = {n: np.zeros((n_steps,) + self._buffers[n].shape[::-1], dtype) for n in self.spec.state}
         status = np.zeros(n_steps, dtype=np.intc)
+        self._before_write()
         run = self._backend.run_function(kernel)
         if run is not None:
             run(n_steps, *[a.ctypes.data for a in arrays], *[histories[n].ctypes.data for n in self.spec.state],
