@@ -158,7 +158,7 @@ def known_keys(name: str, given: dict | None, known) -> dict:
 
 
 def read_only(array: np.ndarray) -> np.ndarray:
-    """A read-only view of a buffer the C code writes (users inspect it, never assign into it)."""
-    view = array.view()
-    view.flags.writeable = False
-    return view
+    """A read-only view of a buffer the C code writes (users inspect it, never assign into it). Its
+    base is a read-only memoryview, so numpy refuses to make it writeable again: x and P change
+    only through the filter's calls, which its trusted steps rely on (runtime/filters.py)."""
+    return np.asarray(memoryview(array).toreadonly())

@@ -163,7 +163,7 @@ class Filter:
     _SHARED = frozenset({"spec", "family", "model", "_backend", "kernels", "_dtype", "_scaling"})
     #: What a copy binds afresh: calls into the C library hold pointers to the original's buffers.
     _BOUND = frozenset({"step", "_calls", "_fast", "_fast_default", "_fast_sample", "_views", "_replay_calls",
-                        "_trusted_calls"})
+                        "_trusted_calls", "_diagnostic_views"})
 
     def copy(self) -> "Filter":
         """An independent filter at this filter's state (x, P, t, noises, gates, options): stepping
@@ -257,7 +257,7 @@ class Filter:
         for kernel, measurement in self._kernel_roles():
             buffers = self._buffers if measurement is None else {**self._buffers, **self.measurements[measurement]}
             self._calls[kernel] = self._backend.bind(kernel, buffers)
-        self._trusted_calls, self._replay_calls = {}, {}
+        self._trusted_calls, self._replay_calls, self._diagnostic_views = {}, {}, {}
         for name, replay in self._replays.items():
             live = {**self._buffers, **self.measurements[name]}
             self._trusted_calls[name] = self._backend.bind(self._trusted_kernel(name), live)
@@ -475,16 +475,20 @@ class Filter:
 
     def y(self, measurement: str | None = None) -> np.ndarray:
         """Innovation of the last update with ``measurement``."""
-        return read_only(self._diagnostic("y", measurement))
+        return self._diagnostic("y", measurement)
 
     def S(self, measurement: str | None = None) -> np.ndarray:
         """Innovation covariance of the last update with ``measurement``."""
-        return read_only(self._diagnostic("S", measurement))
+        return self._diagnostic("S", measurement)
 
     def _diagnostic(self, key: str, measurement: str | None) -> np.ndarray:
-        buffers = self._measurement(measurement)
-        self._replay(self._default if measurement is None else measurement)
-        return buffers[key]
+        """The read-only view of diagnostic ``key`` (made once), replayed first if a trusted step left it."""
+        name = self._default if measurement is None else measurement
+        buffers = self._measurement(name)
+        self._replay(name)
+        if (name, key) not in self._diagnostic_views:
+            self._diagnostic_views[name, key] = read_only(buffers[key])
+        return self._diagnostic_views[name, key]
 
     def _measurement(self, name: str | None) -> dict[str, np.ndarray]:
         name = self._default if name is None else name

@@ -6,14 +6,19 @@
 - µs per sample (medians over repeats) for the simplified (31) and full (26)-(30) 9-axis forms:
   ``step_bound`` (one bound C call, inputs already in the buffers: the floor of a per-sample
   call from Python), ``step_api`` (``MargFilter.step``: argument checks and copies included; the
-  C fast path of runtime/fastcall.py), ``step_api_python`` (the same calls with the fast path off:
-  the Python contract path, as before issue 12; timed in alternate repeats with ``step_api``),
-  ``run`` (``MargFilter.run``: the C run loop over a whole trial), ``numpy_reference``
-  (``reference_run``, on the first ``--reference-samples`` samples).
+  C fast path of runtime/fastcall.py; each sample's arrays made before the timed loop, as a
+  sensor driver hands them over), ``step_api_indexed`` (the same calls in a loop that indexes the
+  recording's arrays for each sample: numpy's ``a[k]`` included, about 1,100 instructions per
+  row view; the figure quoted before this split), ``step_api_python`` (the calls of
+  ``step_api`` with the fast path off: the Python contract path, as before issue 12), ``run``
+  (``MargFilter.run``: the C run loop over a whole trial), ``numpy_reference`` (``reference_run``,
+  on the first ``--reference-samples`` samples). The three ``step_api`` loops are timed in
+  alternate repeats (same machine load).
 - The generated multiplicative EKF of ``models/marg_ekf.py`` (``mekf``): µs per sample for
-  ``step_bound`` (the bound C step, buffers filled), ``step_api`` (``Filter.step`` with its
-  contract checks), ``step_api_python`` (as above) and ``run`` (``Filter.run`` over the whole
-  trial: contract checks, masks and the C loop); its BROAD RMSE per trial.
+  ``step_bound`` (the bound checked C step, buffers filled), ``step_api``, ``step_api_indexed``
+  and ``step_api_python`` (``Filter.step``, as above; after its first step the fast path calls
+  the trusted kernel, runtime/filters.py) and ``run`` (``Filter.run`` over the whole trial:
+  contract checks, masks and the C loop); its BROAD RMSE per trial.
 - ``--instructions``: the MEKF's C API per sample under callgrind (deterministic; predict, update,
   step and run, and the step kernel's share of the run: ``scenarios/marg/instructions.py``).
 - RMSE per BROAD trial (total / heading / inclination over movement phases, deg) at β = 0.041
@@ -99,9 +104,14 @@ def time_form(compiled, recording, form: str, args) -> dict:
 
     python = MargFilter(compiled, form, "marg", beta=BETA_MADGWICK, q0=filt.q)
     python.fast_path = False
+    samples = [(dt[k], gyro[k], acc[k], mag[k]) for k in range(1, n_step)]   # dt[0] = 0: a run's start
 
     def api_steps(f=filt):
-        for k in range(1, n_step):                 # dt[0] = 0 is a run's start, not a step
+        for dt_k, gyro_k, acc_k, mag_k in samples:
+            f.step(dt_k, gyro_k, acc_k, mag_k)
+
+    def indexed_steps(f=filt):
+        for k in range(1, n_step):
             f.step(dt[k], gyro[k], acc[k], mag[k])
 
     def whole_run():
@@ -113,11 +123,11 @@ def time_form(compiled, recording, form: str, args) -> dict:
     def reference():
         reference_run(form, "marg", q0, dt[:m], gyro[:m], acc[:m], mag[:m], BETA_MADGWICK, ALPHA_DEFAULT)
 
-    steps = _interleaved_medians({"api": api_steps, "python": lambda: api_steps(python)}, args.repeats)
+    steps = _interleaved_medians({"api": api_steps, "indexed": indexed_steps, "python": lambda: api_steps(python)},
+                                 args.repeats)
     return {
         "step_bound_us": _median_seconds(raw_steps, args.repeats) / n_step * 1e6,
-        "step_api_us": steps["api"] / (n_step - 1) * 1e6,
-        "step_api_python_us": steps["python"] / (n_step - 1) * 1e6,
+        **_per_step(steps, n_step - 1),
         "run_us": _median_seconds(whole_run, args.repeats) / len(recording) * 1e6,
         "numpy_reference_us": _median_seconds(reference, max(1, args.repeats // 2)) / m * 1e6,
     }
@@ -140,8 +150,13 @@ def time_mekf(compiled, recording, args) -> dict:
     python.fast_path = False
 
     time, dt, gyro = recording.time, recording.dt, recording.gyro
+    samples = [(time[k - 1], dt[k], z[k], mag[k], mask[k], gyro[k]) for k in range(1, n_step)]
 
     def api_steps(f=filt):
+        for t_k, dt_k, z_k, mag_k, mask_k, gyro_k in samples:
+            f.step(t_k, dt_k, z_k, "marg", q=mag_k, mask=mask_k, u=gyro_k)
+
+    def indexed_steps(f=filt):
         for k in range(1, n_step):
             f.step(time[k - 1], dt[k], z[k], "marg", q=mag[k], mask=mask[k], u=gyro[k])
 
@@ -149,11 +164,16 @@ def time_mekf(compiled, recording, args) -> dict:
         filt.x, filt.P = x0, P0
         filt.run(recording.time, z, "marg", q=mag, mask=mask, u=recording.gyro)
 
-    steps = _interleaved_medians({"api": api_steps, "python": lambda: api_steps(python)}, args.repeats)
-    return {"step_bound_us": _median_seconds(raw_steps, args.repeats) / n_step * 1e6,
-            "step_api_us": steps["api"] / (n_step - 1) * 1e6,
-            "step_api_python_us": steps["python"] / (n_step - 1) * 1e6,
+    steps = _interleaved_medians({"api": api_steps, "indexed": indexed_steps, "python": lambda: api_steps(python)},
+                                 args.repeats)
+    return {"step_bound_us": _median_seconds(raw_steps, args.repeats) / n_step * 1e6, **_per_step(steps, n_step - 1),
             "run_us": _median_seconds(whole_run, args.repeats) / len(recording) * 1e6}
+
+
+def _per_step(steps: dict[str, float], calls: int) -> dict[str, float]:
+    """µs per call of the three ``step_api`` loops (:func:`_interleaved_medians` seconds)."""
+    return {"step_api_us": steps["api"] / calls * 1e6, "step_api_indexed_us": steps["indexed"] / calls * 1e6,
+            "step_api_python_us": steps["python"] / calls * 1e6}
 
 
 def accuracy(compiled, recording, form: str) -> dict:
@@ -192,13 +212,13 @@ def run(args) -> int:
 def _print_tables(result: dict) -> None:
     print(f"build (generate + compile, cold): {result['build_seconds']:.2f} s")
     print(f"\nus per sample ({result['timing_trial']}):")
-    print(f"{'form':8} {'step (bound)':>13} {'step (API)':>11} {'(Python path)':>14} {'run':>8} {'NumPy ref':>10} "
-          f"{'ref/run':>8}")
+    print(f"{'form':8} {'step (bound)':>13} {'step (API)':>11} {'(indexed)':>10} {'(Python path)':>14} {'run':>8} "
+          f"{'NumPy ref':>10} {'ref/run':>8}")
     for form, t in result["timing_us_per_sample"].items():
         reference = (f"{t['numpy_reference_us']:10.1f} {t['numpy_reference_us'] / t['run_us']:8.0f}"
                      if "numpy_reference_us" in t else f"{'-':>10} {'-':>8}")
-        print(f"{form:8} {t['step_bound_us']:13.3f} {t['step_api_us']:11.2f} {t['step_api_python_us']:14.2f} "
-              f"{t['run_us']:8.3f} {reference}")
+        print(f"{form:8} {t['step_bound_us']:13.3f} {t['step_api_us']:11.2f} {t['step_api_indexed_us']:10.2f} "
+              f"{t['step_api_python_us']:14.2f} {t['run_us']:8.3f} {reference}")
     counts = result.get("mekf_instructions_per_sample")
     if counts:
         print(f"\nmekf instructions per sample (callgrind, {result['timing_trial']}, C API): "

@@ -160,3 +160,15 @@ def test_attitude_mekf_diagnostics_through_its_own_step(compiled):
     assert np.array_equal(fast.x, slow.x) and np.array_equal(fast.P, slow.P)
     assert np.array_equal(fast.y, slow.y) and np.array_equal(fast.S, slow.S)
     assert fast._fast_sample.trusted_calls == 29
+
+
+def test_the_views_a_filter_hands_out_cannot_be_made_writeable(compiled, recording):
+    """x and P change only through the filter's calls (the trusted kernel relies on it): numpy
+    refuses to turn a view back into a writeable array."""
+    f = ekf.make_filter(compiled, recording)
+    Feed(recording).step(f, 1)
+    for view in (f.x, f.P, f.y("marg"), f.S("marg"), f.R("marg"), f.Q):
+        with pytest.raises(ValueError):
+            view.flags.writeable = True
+        with pytest.raises(ValueError):
+            view[0] = 1.0
