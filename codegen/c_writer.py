@@ -554,13 +554,14 @@ def _finite_terms(kernel: Kernel, names, where) -> list[str]:
             if a.name in names and passing(a, kernel) != "omit" and not (a.name == "z" and _sanitised_z(kernel))]
 
 
-def _checks(kernel: Kernel) -> list[str]:
+def _checks(kernel: Kernel, inputs_finite: bool = True) -> list[str]:
     """Refuse NaN/Inf inputs before any arithmetic (a comparison with NaN inside the kernel would
     raise FE_INVALID). A masked component of z may be NaN: it is replaced by 0 in a copy (z_used),
-    so it enters no arithmetic, and the used components are tested there."""
+    so it enters no arithmetic, and the used components are tested there. ``inputs_finite``
+    False: the inputs are the caller's to test (an ``_unchecked`` entry), z_used is still made."""
     terms = _finite_terms(kernel, [a.name for a in kernel.inputs],
                           lambda a: f"&{a.name}" if passing(a, kernel) == "value" else a.name)
-    lines = [f"  if (!({' && '.join(terms or ['1'])})) return SYMKF_ERR_NONFINITE;"]
+    lines = [f"  if (!({' && '.join(terms or ['1'])})) return SYMKF_ERR_NONFINITE;"] if inputs_finite else []
     if _sanitised_z(kernel):
         size = next(a.size for a in kernel.inputs if a.name == "z")
         index = "[i]" if size > 1 else ""           # a one-component z and mask come by value
@@ -636,12 +637,16 @@ def _call_list(kernel: Kernel, value) -> list[str]:
     return args + [f"{a.name}_out" for a in kernel.outputs[:-1] if a.size]
 
 
-def _wrapper(model: str, kernel: Kernel) -> str:
+def _wrapper(model: str, kernel: Kernel, unchecked: bool = False) -> str:
     """The public function (inputs checked, then ``_eval`` of the kernel or of the first of its
-    variants whose zero entries are all 0) and its binding entry ``_v``."""
+    variants whose zero entries are all 0) and its binding entry ``_v``; ``unchecked``: the same
+    without the inputs' finiteness test, ``<kernel>_unchecked`` (static) and its ``_unchecked_v``
+    (the entry of a run's trusted kernel that the Python runtime calls: :func:`public_functions`)."""
     sanitised = _sanitised_z(kernel)
+    entry = f"{model}_{kernel.name}" + ("_unchecked" if unchecked else "")
     arguments = "(" + ", ".join(_call_list(kernel, lambda a: _z_used(kernel) if sanitised and a.name == "z" else a.name)) + ");"
-    lines = [f"int {model}_{kernel.name}({', '.join(_param_list(kernel))}) {{", *_checks(kernel)]
+    lines = [f"{'static ' if unchecked else ''}int {entry}({', '.join(_param_list(kernel))}) {{",
+             *_checks(kernel, inputs_finite=not unchecked)]
     for name, conditions in kernel.variants:
         zero = [_zero_test(kernel, input_name, entries, value=True) for input_name, entries in conditions if entries]
         lines.append(f"  if ({' && '.join(zero) or '1'}) return {model}_{name}_eval{arguments}")
@@ -653,9 +658,14 @@ def _wrapper(model: str, kernel: Kernel) -> str:
             call.append(f"*args[{i}]" if how == "value" else f"args[{i}]")
     n_in = len(kernel.inputs)
     call += [f"args[{n_in + i}]" for i, a in enumerate(kernel.outputs[:-1]) if a.size]
-    lines += [f"int {model}_{kernel.name}_v(casadi_real *const *args) {{",
-              f"  return {model}_{kernel.name}({', '.join(call)});", "}", ""]
+    lines += [f"int {entry}_v(casadi_real *const *args) {{", f"  return {entry}({', '.join(call)});", "}", ""]
     return "\n".join(lines)
+
+
+def trusted_kernels(bundle: Bundle) -> list[Kernel]:
+    """The kernels some run loop iterates as its ``trusted`` partner (:class:`~symkf.codegen.spec.Kernel`)."""
+    names = {k.trusted for k in bundle.kernels if k.trusted}
+    return [k for k in bundle.kernels if k.name in names]
 
 
 def _run_params(kernel: Kernel) -> list[str]:
@@ -810,6 +820,7 @@ def api_unit(bundle: Bundle) -> str:
         if kernel.runnable or kernel.name in trusted:
             functions.append(_eval(model, kernel, by_name, into=True))
     functions += [_wrapper(model, kernel) for kernel in bundle.kernels]
+    functions += [_wrapper(model, kernel, unchecked=True) for kernel in trusted_kernels(bundle)]
     functions += [_run_loop(model, kernel, by_name) for kernel in bundle.kernels if kernel.runnable]
     parts = [f"/* {GENERATED_NOTICE.format(model=model)}",
              f" * CasADi {ca.__version__}. */",
@@ -861,8 +872,11 @@ def units(bundle: Bundle, content_hash: str, per_part: list[dict[str, str]] | No
 def public_functions(bundle: Bundle) -> list[str]:
     """Every exported symbol of the library, in header order (what ``nm -D`` must list)."""
     names = [f"{bundle.model_name}_content_hash"]
+    trusted = {k.name for k in trusted_kernels(bundle)}
     for kernel in bundle.kernels:
         names += [f"{bundle.model_name}_{kernel.name}", f"{bundle.model_name}_{kernel.name}_v"]
+        if kernel.name in trusted:
+            names.append(f"{bundle.model_name}_{kernel.name}_unchecked_v")
         if kernel.runnable:
             names.append(f"{bundle.model_name}_{kernel.name}_run")
     return names
@@ -999,7 +1013,7 @@ def _returns_line(codes: list[int]) -> str:
     return " * Returns: SYMKF_OK;" + gated + " or " + ", ".join(names) + " (nothing written)."
 
 
-def _function_doc(model: str, kernel: Kernel) -> list[str]:
+def _function_doc(model: str, kernel: Kernel, trusted: bool = False) -> list[str]:
     name = f"{model}_{kernel.name}"
     codes = status_codes(kernel)
     lines = ["/**", f" * {name}: {kernel.doc}"] + _time_doc(kernel) + _arg_lines(kernel)
@@ -1012,6 +1026,12 @@ def _function_doc(model: str, kernel: Kernel) -> list[str]:
               " * and zero-size arguments included (as pointers). Same return codes. */",
               f"#define {_macro(name)}_V_STACK_BYTES {STACK_PLACEHOLDER.format(name + '_v')}",
               f"SYMKF_API int {name}_v(casadi_real *const *args);", ""]
+    if trusted:
+        lines += [f"/** As {name}_v without the test that every input is finite (NaN/Inf in an input is then the",
+                  " * caller's error: the results are unspecified and may raise FE_INVALID): for a caller that has",
+                  " * tested them, as the symkf Python runtime does before it calls a run's trusted kernel. */",
+                  f"#define {_macro(name)}_UNCHECKED_V_STACK_BYTES {STACK_PLACEHOLDER.format(name + '_unchecked_v')}",
+                  f"SYMKF_API int {name}_unchecked_v(casadi_real *const *args);", ""]
     if kernel.runnable:
         per_step = [a.name for a in kernel.inputs if a.name in kernel.per_step and a.size]
         lines += ["/**", f" * {name}_run: n_steps calls of {name} in a loop (the flight-software time loop).",
@@ -1150,8 +1170,9 @@ def header(bundle: Bundle, content_hash: str, compiler: str = "cc", flags: str =
               "/** The content hash this library was generated with (checked by the Python loader). */",
               f"#define {_macro(model)}_CONTENT_HASH_STACK_BYTES {STACK_PLACEHOLDER.format(model + '_content_hash')}",
               f"SYMKF_API const char *{model}_content_hash(void);", ""]
+    trusted = {k.name for k in trusted_kernels(bundle)}
     for kernel in bundle.kernels:
-        lines += _function_doc(model, kernel)
+        lines += _function_doc(model, kernel, kernel.name in trusted)
     lines += ["#ifdef __cplusplus", "}", "#endif", f"#endif /* {guard} */", ""]
     return ascii_text("\n".join(lines))
 

@@ -108,14 +108,16 @@ class CompiledBackend:
                                     "records (SHA-256); it was not opened. Rebuild with `symkf build <model>`")
         return cls(library, manifest)
 
-    def bind(self, kernel: str, buffers: dict[str, np.ndarray]) -> "BoundCall":
+    def bind(self, kernel: str, buffers: dict[str, np.ndarray], entry: str = "v") -> "BoundCall":
+        """``<model>_<kernel>_<entry>`` (the binding entry ``_v``, or ``unchecked_v``: no test of the
+        inputs' finiteness, for a run's trusted kernel) bound to ``buffers`` by argument name."""
         info = self.kernels[kernel]
         shapes = dict(info.inputs + info.outputs)
         for name, _ in info.pointer_names():
             _check_buffer(kernel, name, buffers[name], shapes[name], self.dtype)
         pointers = (ctypes.c_void_p * max(len(info.pointer_names()), 1))(
             *[buffers[name].ctypes.data for name, _ in info.pointer_names()])
-        function = getattr(self.lib, f"{self.model}_{kernel}_v")
+        function = getattr(self.lib, f"{self.model}_{kernel}_{entry}")
         function.argtypes = None           # a prebuilt byref needs no per-call conversion (measured
         function.restype = ctypes.c_int    # 0.39 vs 0.62 us per call with argtypes + an int address)
         return BoundCall(kernel, function, ctypes.byref(pointers), keep_alive=(pointers, buffers),
@@ -194,7 +196,8 @@ class VirtualMachineBackend:
             warnings.warn(f"{reason}; evaluating '{self.model}' in CasADi's virtual machine "
                           "(same numbers, much slower)", RuntimeWarning, stacklevel=3)
 
-    def bind(self, kernel: str, buffers: dict[str, np.ndarray]) -> BoundCall:
+    def bind(self, kernel: str, buffers: dict[str, np.ndarray], entry: str = "v") -> BoundCall:
+        """``kernel`` evaluated on ``buffers`` (every ``entry`` tests the inputs here)."""
         info, function = self.kernels[kernel], self.functions[kernel]
         shapes = dict(info.inputs + info.outputs)
         for name, _ in info.pointer_names():

@@ -102,8 +102,8 @@ class Recorder:
         bind, run_function = CompiledBackend.bind, CompiledBackend.run_function
         recorder = self
 
-        def recording_bind(backend, kernel, buffers):
-            real = bind(backend, kernel, buffers)
+        def recording_bind(backend, kernel, buffers, entry="v"):
+            real = bind(backend, kernel, buffers, entry)
             info = backend.kernels[kernel]
 
             def call() -> int:
