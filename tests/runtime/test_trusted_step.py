@@ -172,3 +172,17 @@ def test_the_views_a_filter_hands_out_cannot_be_made_writeable(compiled, recordi
             view.flags.writeable = True
         with pytest.raises(ValueError):
             view[0] = 1.0
+
+
+def test_diagnostics_the_checked_kernel_refuses_to_replay_are_nan(compiled, recording):
+    """The one case a trusted step and a checked one part: a kept P that fails the PSD test (a P
+    the filter made itself: never seen; here forced). y and S then say so (NaN), x and P stand."""
+    f = ekf.make_filter(compiled, recording)
+    feed = Feed(recording)
+    for k in range(1, 5):
+        feed.step(f, k)
+    assert _trusted_calls(f) == 3
+    f._replays["marg"].buffers["P"][0, 0] = -1.0
+    x, P = f.x.copy(), f.P.copy()
+    assert np.isnan(f.y("marg")).all() and np.isnan(f.S("marg")).all()
+    assert np.array_equal(f.x, x) and np.array_equal(f.P, P)
