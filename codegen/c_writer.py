@@ -812,7 +812,7 @@ def api_unit(bundle: Bundle) -> str:
     prototypes = [f"SYMKF_INTERNAL int {raw_name(model, k)}(const casadi_real **arg, casadi_real **res, int *iw, "
                   "casadi_real *w, int mem);" for k in bundle.kernels]
     by_name = {k.name: k for k in bundle.kernels}
-    trusted = {k.trusted for k in bundle.kernels if k.trusted}
+    trusted = {k.name for k in trusted_kernels(bundle)}
     trusted |= {v for k in bundle.kernels if k.name in trusted for v, _ in k.variants}
     functions = [FINITE_HELPER]
     for kernel in bundle.kernels:

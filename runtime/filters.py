@@ -75,10 +75,11 @@ class StateScaling:
 
 @dataclass
 class Replay:
-    """What a trusted step (module docstring) leaves for one measurement's diagnostics: that step's
-    carried state and per-step inputs, kept by the C fast path, and whether its y, S are still to
-    be computed from them (``stale[0]`` = 1, set in C)."""
+    """What a trusted step (module docstring) of one measurement needs and leaves: the trusted
+    kernel's name, that step's carried state and per-step inputs, kept by the C fast path, and
+    whether its y, S are still to be computed from them (``stale[0]`` = 1, set in C)."""
 
+    kernel: str
     buffers: dict[str, np.ndarray]
     stale: np.ndarray
 
@@ -210,10 +211,11 @@ class Filter:
         self._own_state = np.zeros(1)
         self._replays: dict[str, Replay] = {}
         for name, kernel in self.spec.step.items():
-            if self._trusted_kernel(name):
-                live = {**self._buffers, **self.measurements[name]}
+            trusted = self._trusted_kernel(name)
+            if trusted:
+                live = self._measurement_buffers(name)
                 kept = [n for n in self.spec.state + self.kernels[kernel].per_step if live[n].size]
-                self._replays[name] = Replay({n: live[n].copy(order="K") for n in kept}, np.zeros(1))
+                self._replays[name] = Replay(trusted, {n: live[n].copy(order="K") for n in kept}, np.zeros(1))
 
     def _trusted_kernel(self, name: str) -> str:
         """The trusted partner of the run kernel of measurement ``name`` if it takes the step
@@ -223,6 +225,10 @@ class Filter:
         trusted = kernels.get(run.trusted) if run is not None and run.trusted else None
         fits = trusted is not None and trusted.inputs == step.inputs and set(trusted.outputs) <= set(step.outputs)
         return trusted.name if fits else ""
+
+    def _measurement_buffers(self, name: str) -> dict[str, np.ndarray]:
+        """Every buffer a kernel of measurement ``name`` reads or writes, by argument name."""
+        return {**self._buffers, **self.measurements[name]}
 
     def _kernel_roles(self) -> list[tuple[str, str | None]]:
         # a prediction that reads a measurement input (the augmented UKF's R) reads the first one's
@@ -255,14 +261,14 @@ class Filter:
     def _bind(self) -> None:
         self._calls = {}
         for kernel, measurement in self._kernel_roles():
-            buffers = self._buffers if measurement is None else {**self._buffers, **self.measurements[measurement]}
+            buffers = self._buffers if measurement is None else self._measurement_buffers(measurement)
             self._calls[kernel] = self._backend.bind(kernel, buffers)
         self._trusted_calls, self._replay_calls, self._diagnostic_views = {}, {}, {}
         for name, replay in self._replays.items():
-            live = {**self._buffers, **self.measurements[name]}
+            live = self._measurement_buffers(name)
             # its inputs are tested by the fast path (arguments), by the setters (constants) and on
             # output (x, P): the entry without the inputs' finiteness test (0.6k instructions for the MEKF)
-            self._trusted_calls[name] = self._backend.bind(self._trusted_kernel(name), live, entry="unchecked_v")
+            self._trusted_calls[name] = self._backend.bind(replay.kernel, live, entry="unchecked_v")
             self._replay_calls[name] = self._backend.bind(self.spec.step[name], {**live, **replay.buffers})
         self._make_fast_paths()
 
@@ -327,7 +333,7 @@ class Filter:
                 slots.append((buffer, self.FAST_NONE.get(key, required), self.FAST_CHECK.get(key, "finite")))
         trusted = None
         if name in self._replays:
-            replay, live = self._replays[name], {**self._buffers, **buffers}
+            replay, live = self._replays[name], self._measurement_buffers(name)
             trusted = (self._trusted_calls[name], self._own_state, replay.stale,
                        [(live[n], kept, n in self.spec.state) for n, kept in replay.buffers.items()])
         return fastcall.step(self._calls[self.spec.step[name]], self._buffers.get("t"), self._buffers.get("dt"),
@@ -721,7 +727,7 @@ class Filter:
         (the filter's run kernel, ``FilterSpec.run``, else its step kernel)."""
         kernel = self.spec.run.get(name, self.spec.step[name])
         info = self._backend.kernels[kernel]
-        constants = {**self._buffers, **self.measurements[name]}
+        constants = self._measurement_buffers(name)
         dtype = self._dtype
         for n in info.per_step:
             self._fits(n, per_step[n])

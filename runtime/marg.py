@@ -55,7 +55,7 @@ class MargFilter(Filter):
 
     def _bind(self) -> None:
         super()._bind()
-        self._initial = self._backend.bind(f"gd_initial_{self.mode}", {**self._buffers, **self.measurements[self.mode]})
+        self._initial = self._backend.bind(f"gd_initial_{self.mode}", self._measurement_buffers(self.mode))
 
     def _make_fast_paths(self) -> None:
         """step(dt, gyro, acc, mag) in C: gyro required, a missing 9-axis magnetometer sample is zeros."""
