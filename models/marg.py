@@ -3,7 +3,7 @@
 Paper 001: Ryang, Kim, "Characteristics of attitude estimation using a gradient descent
 algorithm" (2020), a Madgwick-type complementary filter. This file holds the paper's equations
 once, symbolically; ``codegen/families/marg.py`` builds the filter steps (26)-(31) from them and
-``runtime/marg.py`` evaluates them for the NumPy reference.
+``scenarios/marg/filter.py`` evaluates them for the NumPy reference.
 
 Conventions:
 - The paper writes quaternions **scalar-first** ``[q1 q2 q3 q4]`` (q1 the scalar). The project

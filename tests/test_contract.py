@@ -28,8 +28,8 @@ from symkf.models import geo_satellite as G
 from symkf.models import get_model
 from symkf.models import launcher as L
 from symkf.runtime import Filter, SymkfError, load
-from symkf.runtime.attitude import ReferenceAttitudeFilter
-from symkf.runtime.marg import MargFilter, reference_step
+from symkf.scenarios.attitude.filter import ReferenceAttitudeFilter
+from symkf.scenarios.marg.filter import MargFilter, reference_step
 from symkf.runtime.reference import ManifoldReference, NumpyCDEKF, ReferenceFilter
 
 N_STEPS = 6

@@ -18,7 +18,7 @@ from scipy.spatial.transform import Rotation
 
 from symkf.models import get_model
 from symkf.runtime import load
-from symkf.runtime.attitude import AttitudeFilter, ReferenceAttitudeFilter
+from symkf.scenarios.attitude.filter import AttitudeFilter, ReferenceAttitudeFilter
 
 KINDS = ("mekf", "ukf", "aukf")
 

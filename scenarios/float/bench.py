@@ -92,7 +92,7 @@ def marg() -> dict:
     """Mean total RMSE (deg) over the BROAD trials: MEKF and gradient descent (simple, beta 0.041)."""
     from symkf.models.marg import BETA_MADGWICK
     from symkf.runtime import load
-    from symkf.runtime.marg import MargFilter
+    from symkf.scenarios.marg.filter import MargFilter
     from symkf.scenarios.marg import ekf
     from symkf.scenarios.marg.data import broad_trials, data_dir, load_recording, run_recording
     from symkf.scenarios.marg.metric import broad_errors

@@ -36,7 +36,7 @@ import numpy as np
 from symkf.codegen import build_model
 from symkf.models.marg import ALPHA_DEFAULT, BETA_MADGWICK
 from symkf.runtime import load
-from symkf.runtime.marg import MargFilter, reference_run
+from symkf.scenarios.marg.filter import MargFilter, reference_run
 from symkf.scenarios.report import emit
 from symkf.scenarios.marg.data import data_dir, load_recording, run_recording
 from symkf.scenarios.marg.metric import broad_errors

@@ -5,7 +5,7 @@
 
 For every β: the Euler angles (5) of the estimate vs time (with the optical reference when the
 recording has one; BROAD trials do, the x-io CSV does not), the BROAD error metric (total,
-heading, inclination RMSE over movement phases, deg; ``runtime/marg.py``), and two measures of
+heading, inclination RMSE over movement phases, deg; ``scenarios/marg/filter.py``), and two measures of
 the paper's claim that a larger β brings high-frequency oscillation:
 
 - ``hf_rms_deg``: RMS of the Euler angles' content above ``--hf-cutoff`` Hz (default 5 Hz; body
@@ -39,7 +39,7 @@ import numpy as np
 
 from symkf.models.marg import ALPHA_DEFAULT, BETA_MADGWICK
 from symkf.runtime import load
-from symkf.runtime.marg import MargFilter
+from symkf.scenarios.marg.filter import MargFilter
 from symkf.scenarios.marg import ekf
 from symkf.scenarios.marg.data import Recording, broad_trials, data_dir, load_recording, run_recording
 from symkf.scenarios.marg.metric import broad_errors, error_rotation_vectors, euler_angles, from_enu, to_enu

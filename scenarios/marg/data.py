@@ -2,7 +2,7 @@
 
 - :func:`load_recording`: BROAD ``.mat`` or ``.hdf5`` trials (Laidig et al. 2021, CC BY 4.0; optical reference)
   and the x-io Fusion CSV (MIT; no reference), as :class:`Recording`.
-- :func:`run_recording`: a :class:`~symkf.runtime.marg.MargFilter` over a whole recording.
+- :func:`run_recording`: a :class:`~symkf.scenarios.marg.filter.MargFilter` over a whole recording.
 
 Quaternions are scalar-last ``[x, y, z, w]`` everywhere in the project; BROAD's scalar-first
 ``opt_quat`` is converted on loading.

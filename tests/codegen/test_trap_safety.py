@@ -254,7 +254,7 @@ def geo_flight():
 
 
 def marg_flight():
-    from symkf.runtime.marg import MargFilter
+    from symkf.scenarios.marg.filter import MargFilter
     rng = np.random.default_rng(0)
     n, dt = 2000, 1 / 100
     t = np.arange(n) * dt

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from symkf.runtime import SymkfError, fastcall, load
-from symkf.runtime.attitude import attitude_filter
-from symkf.runtime.marg import MargFilter
+from symkf.scenarios.attitude.filter import attitude_filter
+from symkf.scenarios.marg.filter import MargFilter
 from symkf.scenarios.launcher.truth import propagate, radar_track
 from symkf.scenarios.marg import ekf
 from symkf.scenarios.marg.data import Recording
@@ -222,7 +222,7 @@ def test_a_kernel_failure_is_raised_by_the_python_path_with_state_unchanged(laun
 
 def test_without_the_extension_every_call_takes_the_python_path(tmp_path):
     code = ("import numpy as np; from symkf.runtime import fastcall, load\n"
-            "from symkf.runtime.marg import MargFilter\n"
+            "from symkf.scenarios.marg.filter import MargFilter\n"
             "m = MargFilter(load('marg', backend='compiled'))\n"
             "q = m.step(0.01, np.zeros(3), np.array([0, 0, 9.8]), np.array([20.0, 0, -40]))\n"
             "print(fastcall.extension() is None, m._fast_sample is None, fastcall.unavailable, list(q))")

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from symkf.runtime import load
-from symkf.runtime.attitude import attitude_filter
-from symkf.runtime.marg import MargFilter
+from symkf.scenarios.attitude.filter import attitude_filter
+from symkf.scenarios.marg.filter import MargFilter
 from symkf.scenarios.launcher.truth import propagate, radar_track
 
 P0 = np.diag([10.0, 1e-4, 1e-4, 1000.0, 1e-5, 1e-5]) ** 2

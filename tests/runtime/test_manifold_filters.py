@@ -7,7 +7,7 @@ import pytest
 
 from symkf.models import ModelError, Model
 from symkf.runtime import SymkfError, load
-from symkf.runtime.reference import ManifoldReference, exp_rotvec, hamilton, log_quaternion
+from symkf.runtime.reference.manifold import ManifoldReference, exp_rotvec, hamilton, log_quaternion
 
 SPINNER = Path(__file__).resolve().parents[1] / "codegen" / "spinner_model.py"
 Q0 = np.array([0.1, -0.2, 0.3, 0.9]) / np.linalg.norm([0.1, -0.2, 0.3, 0.9])

@@ -14,7 +14,7 @@ from symkf.codegen.families.gradient_descent import marg_functions
 from symkf.models import marg as paper
 from symkf.models import quaternion as quat
 from symkf.runtime import load
-from symkf.runtime.marg import MargFilter, reference_run, reference_step
+from symkf.scenarios.marg.filter import MargFilter, reference_run, reference_step
 
 RNG = np.random.default_rng(1)
 

@@ -10,7 +10,7 @@ import pytest
 
 from symkf.codegen.spec import STATUS_GATED
 from symkf.runtime import SymkfError, fastcall, load
-from symkf.runtime.attitude import attitude_filter
+from symkf.scenarios.attitude.filter import attitude_filter
 from symkf.scenarios.marg import ekf
 from symkf.scenarios.marg.data import Recording
 

@@ -8,7 +8,7 @@ from scipy.io import loadmat
 from scipy.spatial.transform import Rotation
 
 from symkf.runtime import load
-from symkf.runtime.marg import MargFilter, reference_initial, reference_run
+from symkf.scenarios.marg.filter import MargFilter, reference_initial, reference_run
 from symkf.scenarios.marg.data import data_dir, load_recording, run_recording
 from symkf.scenarios.marg.metric import broad_error_angles, broad_errors, error_rotation_vectors, to_enu
 

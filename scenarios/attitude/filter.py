@@ -4,7 +4,7 @@
 manifold filters (``kind`` = "mekf": the generic multiplicative EKF, "ukf": the paper's
 separated-space UKF "sukf", "aukf": its full augmented form; codegen/families/manifold.py and
 quaternion_filters.py document the equations);
-:class:`~symkf.runtime.reference.ReferenceAttitudeFilter` is the paper's algebra written in NumPy.
+:class:`~symkf.scenarios.attitude.reference.ReferenceAttitudeFilter` is the paper's algebra written in NumPy.
 
 Conventions: x = [q; b] with q scalar-last (paper 000), P the 6x6 covariance of [δp; δb],
 δp the vector part of δq = q ⊗ q̂⁻¹ (half-angle units). Q: 6x6 PSD of [η_a; η_b]; R: 3x3
@@ -16,15 +16,15 @@ rejected otherwise; a star-tracker quaternion with NaN/Inf raises SymkfError (NO
 ``nan="mask"`` (pass ``None`` to skip a missing measurement; in :meth:`AttitudeFilter.run` a NaN
 row means "no measurement"); a star-tracker quaternion whose norm is off 1 by more than 1e-3 is
 rejected by the kernel (SYMKF_ERR_DOMAIN), smaller deviations are normalised. A failed step
-raises and leaves x, P and t unchanged. The NumPy reference lives in :mod:`symkf.runtime.reference`.
+raises and leaves x, P and t unchanged. The NumPy reference lives in :mod:`symkf.scenarios.attitude.reference`.
 """
 from __future__ import annotations
 
 import numpy as np
 
 from symkf.models import attitude as model
-from . import contract
-from .filters import Filter, RunResult
+from symkf.runtime import contract
+from symkf.runtime.filters import Filter, RunResult
 from .reference import (DEFAULT_KAPPA, KINDS, NORM_TOLERANCE, ReferenceAttitudeFilter, _initial_state,  # noqa: F401
                         eigen_mean, unit_quaternion)
 

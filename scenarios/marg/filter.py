@@ -17,10 +17,10 @@ import numpy as np
 
 from symkf.codegen.families.gradient_descent import FORMS, MODES
 from symkf.models.marg import ALPHA_DEFAULT, BETA_MADGWICK
-from . import contract
-from .backends import SymkfError
-from .filters import Filter, RunResult
-from .reference import ReferenceMarg, reference_initial, reference_run, reference_step  # noqa: F401
+from symkf.runtime import contract
+from symkf.runtime.backends import SymkfError
+from symkf.runtime.filters import Filter, RunResult
+from symkf.runtime.reference.gradient_descent import ReferenceMarg, reference_initial, reference_run, reference_step  # noqa: F401
 
 #: Largest accepted deviation of an initial quaternion's norm from 1.
 UNIT_TOLERANCE = 1e-6

@@ -1,0 +1,36 @@
+"""NumPy references of the generated filters: the readable oracles (and the "plain Python" timing
+column). One module per family, each with the compiled filter's shape (``x``, ``P``,
+``predict``/``update``/``step``):
+
+- :mod:`.kalman`: :class:`ReferenceFilter`, the EKF and UKF of ``codegen/families/kalman.py``;
+- :mod:`.cd_ekf`: :class:`NumpyCDEKF`, the continuous-discrete EKF;
+- :mod:`.manifold`: :class:`ManifoldReference`, the multiplicative EKF and the manifold UKF;
+- :mod:`.gradient_descent`: :class:`ReferenceMarg`, the gradient-descent orientation filter.
+
+:func:`for_family` finds the reference of a family by its name. The model is evaluated through
+CasADi (the same Functions the C code calls); compiled and reference filters agree to round-off
+on the same inputs (tests/test_contract.py).
+"""
+from __future__ import annotations
+
+from .cd_ekf import NumpyCDEKF
+from .common import wrap_angle
+from .gradient_descent import ReferenceMarg
+from .kalman import ReferenceFilter
+from .manifold import ManifoldReference
+
+#: The NumPy reference of each generated family.
+REFERENCE_OF_FAMILY = {"ekf": ReferenceFilter, "ukf": ReferenceFilter, "cd_ekf": NumpyCDEKF,
+                       "mekf": ManifoldReference, "mukf": ManifoldReference}
+
+
+def for_family(family: str):
+    """The NumPy reference class of ``family`` (KeyError naming the families that have one)."""
+    try:
+        return REFERENCE_OF_FAMILY[family]
+    except KeyError:
+        raise KeyError(f"no NumPy reference for family {family!r}; references exist for "
+                       f"{', '.join(sorted(REFERENCE_OF_FAMILY))}") from None
+
+
+__all__ = ["ManifoldReference", "NumpyCDEKF", "ReferenceFilter", "ReferenceMarg", "for_family", "wrap_angle"]
