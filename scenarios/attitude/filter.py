@@ -116,7 +116,7 @@ class AttitudeFilter(Filter):
 
 def attitude_filter(kind: str, q0, b0, P0, backend: str = "auto", **options) -> AttitudeFilter:
     """Load (building if stale) the attitude model and return its ``kind`` filter."""
-    from . import load
+    from symkf.runtime import load
     return AttitudeFilter(load("attitude", backend=backend), kind, q0, b0, P0, **options)
 
 
