@@ -54,7 +54,9 @@ from pathlib import Path
 import casadi as ca
 
 from symkf.models import Model, get_model
-from . import c_writer, families  # noqa: F401  (families register themselves on import)
+from . import families  # noqa: F401  (families register themselves on import)
+from .c_backend import header as c_header, makefile as c_makefile, stack as c_stack, units as c_units
+from .c_backend.names import check_c_names
 from .discretize import continuous_dynamics, measurement_function
 from .kernels import FAMILIES, LONG_COMPILE, ModelFunctions, Symbols, model_kernels
 from .scaling import model_for
@@ -63,7 +65,10 @@ from .spec import Bundle, CodegenConfig, ConfigError, register_options
 CODEGEN_DIR = Path(__file__).resolve().parent
 #: Codegen modules every model's code depends on (their source is part of every content hash).
 FRAMEWORK_MODULES = ("symkf.codegen.kernels", "symkf.codegen.discretize", "symkf.codegen.linalg",
-                     "symkf.codegen.spec", "symkf.codegen.c_writer", "symkf.codegen.build",
+                     "symkf.codegen.spec", "symkf.codegen.c_backend.api", "symkf.codegen.c_backend.casadi_text",
+                     "symkf.codegen.c_backend.header", "symkf.codegen.c_backend.makefile",
+                     "symkf.codegen.c_backend.names", "symkf.codegen.c_backend.stack",
+                     "symkf.codegen.c_backend.template_util", "symkf.codegen.c_backend.units", "symkf.codegen.build",
                      "symkf.codegen.scaling", "symkf.models.base")
 #: Files of a bundle exported by ``symkf build X --out DIR`` (``{name}`` = the model's name),
 #: besides the C units the manifest lists under "sources".
@@ -228,7 +233,7 @@ def content_hash(model: Model, config: CodegenConfig, cc: str, generated: str | 
     """Hash of everything that determines the library: what is generated + compiler + flags."""
     generated = generated or generated_hash(model, config)
     text = json.dumps({"generated": generated, "cc": compiler_identity(cc),
-                       "flags": c_writer.STRICT_FLAGS, "optimization": config.optimization}, sort_keys=True)
+                       "flags": c_makefile.STRICT_FLAGS, "optimization": config.optimization}, sort_keys=True)
     return hashlib.sha256(text.encode()).hexdigest()[:32]
 
 
@@ -261,20 +266,9 @@ def _generate(model: Model, config: CodegenConfig, on_part=None) -> Bundle:
                                                              model.describe()))
     kernels = own + [k for family in model.filters for k in made[family].kernels]
     filters = [f for family in model.filters for f in made[family].filters]
-    _check_c_names(model.name, kernels)
+    check_c_names(model.name, kernels, model.measurements)
     parts = (len(own),) + tuple(len(made[family].kernels) for family in model.filters)
     return Bundle(model.name, kernels, config, model.describe(), filters, parts)
-
-
-def _check_c_names(model: str, kernels) -> None:
-    """Every generated C function name once (a safety net behind Model.validate's naming rule)."""
-    seen = {"content_hash": "the content hash"}
-    for kernel in kernels:
-        for name in (kernel.name, f"{kernel.name}_v") + ((f"{kernel.name}_run",) if kernel.runnable else ()):
-            if name in seen:
-                raise BuildError(f"model '{model}': C function {model}_{name} would come from both {seen[name]} "
-                                 f"and kernel '{kernel.name}'; rename the measurement")
-            seen[name] = f"kernel '{kernel.name}'"
 
 
 # ---------------------------------------------------------------------- up-to-date checks
@@ -378,7 +372,7 @@ def build_validated(model: Model, force: bool = False, start: float | None = Non
                 mark, per_part = time.perf_counter(), {}      # each part's units compile while the next part generates
 
                 def on_part(index: int, part: Bundle) -> None:
-                    per_part[index] = c_writer.part_units(part)
+                    per_part[index] = c_units.part_units(part)
                     units.add(per_part[index])
                 bundle = _generate(model, config, on_part)
                 timings["generate"] = time.perf_counter() - mark
@@ -408,18 +402,18 @@ def write_bundle(bundle: Bundle, directory: Path, key: str, generated: str, cc: 
     the Makefile and a provisional manifest.json (no library yet; ``sources`` lists the units,
     the API unit first). ``per_part``: the units of each part of the bundle, if already made."""
     name = bundle.model_name
-    sources = c_writer.units(bundle, key, per_part)
+    sources = c_units.units(bundle, key, per_part)
     if units is not None:
         units.add(sources)
     else:
         for file, text in sources.items():
             (directory / file).write_text(text)
-    (directory / f"{name}.h").write_text(c_writer.header(bundle, key, cc, " ".join(compile_flags(bundle.config))))
+    (directory / f"{name}.h").write_text(c_header.header(bundle, key, cc, " ".join(compile_flags(bundle.config))))
     own = {file: flags for file in sources if (flags := unit_optimization(bundle.config, file)) != bundle.config.optimization}
-    (directory / "Makefile").write_text(c_writer.makefile(name, bundle.config.optimization, list(sources), own))
+    (directory / "Makefile").write_text(c_makefile.makefile(name, bundle.config.optimization, list(sources), own))
     manifest = {"model": name, "content_hash": key, "generated_hash": generated,
                 "symkf_version": _symkf_version(), "casadi_version": ca.__version__,
-                "compiler": cc, "compiler_identity": compiler_identity(cc), "flags": c_writer.STRICT_FLAGS,
+                "compiler": cc, "compiler_identity": compiler_identity(cc), "flags": c_makefile.STRICT_FLAGS,
                 "optimization": bundle.config.optimization, "unit_optimization": own, "config": asdict(bundle.config),
                 "description": bundle.description, "library": f"lib{name}.so", "sources": list(sources),
                 "kernels": [k.as_dict() for k in bundle.kernels],
@@ -429,8 +423,8 @@ def write_bundle(bundle: Bundle, directory: Path, key: str, generated: str, cc: 
 
 def compile_flags(config: CodegenConfig, unit: str = "") -> list[str]:
     """Flags of a unit (:func:`unit_optimization`), in the library and in the bundle's Makefile alike."""
-    return (c_writer.STRICT_FLAGS.split() + unit_optimization(config, unit).split() + ["-fPIC"]
-            + c_writer.precision_flags(config))
+    return (c_makefile.STRICT_FLAGS.split() + unit_optimization(config, unit).split() + ["-fPIC"]
+            + c_makefile.precision_flags(config))
 
 
 register_options("unit_optimization")
@@ -452,7 +446,7 @@ def measures_stack(cc: str) -> bool:
     """Whether the compiler writes call graphs with stack frames (GCC >= 10; clang does not)."""
     with tempfile.TemporaryDirectory() as tmp:
         (Path(tmp) / "probe.c").write_text("int symkf_probe(void);\nint symkf_probe(void) { return 0; }\n")
-        returncode, _ = run_compiler(cc.split() + c_writer.STACK_FLAGS.split() + ["-c", "-o", "probe.o", "probe.c"],
+        returncode, _ = run_compiler(cc.split() + c_makefile.STACK_FLAGS.split() + ["-c", "-o", "probe.o", "probe.c"],
                                      Path(tmp))
         return returncode == 0 and (Path(tmp) / "probe.ci").is_file()
 
@@ -472,7 +466,7 @@ def compile_bundle(directory: Path, name: str, cc: str, config: CodegenConfig,
     objects, compiled = units.finish(manifest["sources"])
     graphs = "".join(obj.with_suffix(".ci").read_text() for obj in objects) if units.stack else None
     header = directory / f"{name}.h"
-    header.write_text(c_writer.fill_stack(header.read_text(), c_writer.stack_usage(graphs) if units.stack else None))
+    header.write_text(c_stack.fill_stack(header.read_text(), c_stack.stack_usage(graphs) if units.stack else None))
     cmd = cc.split() + ["-shared", "-o", f"lib{name}.so"] + [o.name for o in objects] + ["-lm"]
     returncode, stderr = run_compiler(cmd, directory)
     if returncode != 0:
@@ -524,7 +518,7 @@ class UnitCompiler:
         self.pool.__exit__(kind, value, traceback)
 
     def flags(self, file: str) -> list[str]:
-        return compile_flags(self.config, file) + (c_writer.STACK_FLAGS.split() if self.stack else [])
+        return compile_flags(self.config, file) + (c_makefile.STACK_FLAGS.split() if self.stack else [])
 
     def add(self, texts: dict[str, str]) -> None:
         """Write these units and start compiling each one whose object is not cached; a unit

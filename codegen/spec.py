@@ -252,7 +252,7 @@ class Bundle:
     description: dict = field(default_factory=dict)
     filters: list[FilterSpec] = field(default_factory=list)
     #: How many kernels each generation step made, in order (the model's own kernels, then each
-    #: filter family's); () = one part. The C of each part is generated on its own (c_writer).
+    #: filter family's); () = one part. The C of each part is generated on its own (c_backend.units).
     parts: tuple[int, ...] = ()
 
     def part_bundles(self) -> list["Bundle"]:

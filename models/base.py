@@ -382,7 +382,6 @@ class Model:
         from . import checks
         checks.check_equations(self)
         checks.check_unused(self)
-        checks.check_generated_names(self)
         return self
 
     def describe(self) -> dict:

@@ -36,8 +36,6 @@ NONDIFFERENTIABLE = {ca.OP_FLOOR: "floor", ca.OP_CEIL: "ceil", ca.OP_SIGN: "sign
                      ca.OP_LE: "a comparison (<=)", ca.OP_EQ: "a comparison (==)", ca.OP_NE: "a comparison (!=)"}
 #: Filter families that see the parameters only through the model's equations.
 EQUATION_ONLY_FAMILIES = frozenset({"ekf", "ukf", "cd_ekf"})
-#: Suffixes the C writer appends to a kernel's name (``<kernel>_v``, ``<kernel>_run``).
-GENERATED_SUFFIXES = ("_v", "_run")
 
 
 def scalar_expression(model: str, what: str, value) -> ca.SX:
@@ -129,13 +127,3 @@ def check_unused(model: "Model") -> None:
         if sym.name() not in used:
             raise ModelError(f"model '{model.name}': parameter '{var.name}' is declared but no equation uses it")
 
-
-def check_generated_names(model: "Model") -> None:
-    """Measurement names must not collide once the C writer adds its suffixes."""
-    names = set(model.measurements)
-    for name in names:
-        for suffix in GENERATED_SUFFIXES:
-            if name.endswith(suffix) and name[: -len(suffix)] in names:
-                raise ModelError(f"model '{model.name}': measurement '{name}' collides with the generated "
-                                 f"'{name[: -len(suffix)]}{suffix}' function of measurement "
-                                 f"'{name[: -len(suffix)]}'; rename one of them")

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from symkf.codegen.build import read_manifest, verified_library
-from symkf.codegen.c_writer import passing
+from symkf.codegen.c_backend.api import passing
 from symkf.codegen.spec import STATUS_CODES, STATUS_GATED, STATUS_NONFINITE, Arg, Bundle, Kernel
 
 
@@ -127,7 +127,7 @@ class CompiledBackend:
         """``<model>_<kernel>_run`` as ``run(n_steps, *input_addresses, *hist_addresses, status_address)``.
 
         The C signature passes constant scalars (kappa) by value and leaves zero-size inputs out
-        (:func:`symkf.codegen.c_writer.passing`); this adapter takes every input's buffer address,
+        (:func:`symkf.codegen.c_backend.api.passing`); this adapter takes every input's buffer address,
         in manifest order, and passes each the way the C function expects it.
         """
         info = self.kernels[kernel]
@@ -168,7 +168,7 @@ class BoundCall(functools.partial):
 
 
 def inputs_finite(info: KernelInfo, values: list[np.ndarray]) -> bool:
-    """The C wrappers' input rule (codegen/c_writer.py), for the VM: every input finite, a
+    """The C wrappers' input rule (codegen/c_backend/api.py), for the VM: every input finite, a
     measurement z only where its mask is > 0.5 when z and mask have one entry per component
     (kernels may rely on it: codegen/families/manifold.py tests no input itself)."""
     named = {name: np.asarray(v).reshape(-1, order="F") for (name, _), v in zip(info.inputs, values)}

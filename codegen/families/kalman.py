@@ -23,7 +23,7 @@ A failed Cholesky factorisation returns status SYMKF_ERR_NOT_PD and the inputs x
 
 **Input checks.** The kernels do not test their inputs for NaN/Inf, except an update's x and P: every
 caller does first, with one rule (every input finite; z only where its mask is > 0.5): the C
-wrappers and run loops (codegen/c_writer.py) and the CasADi-VM backend (runtime/backends.py),
+wrappers and run loops (codegen/c_backend/api.py) and the CasADi-VM backend (runtime/backends.py),
 as for the manifold family. An in-kernel test repeated theirs at one multiply-add per input entry
 (about 90 in the launcher's predict, 70 in its update) on every step (issue 12). The update's x
 and P are tested: in a fused step they are the prediction's outputs, which no caller has seen.

@@ -64,7 +64,7 @@ a non-PSD P or a failed factorisation -> SYMKF_ERR_NOT_PD; x and P unchanged on 
 **Input checks.** The kernels of these families do not test their inputs for NaN/Inf: every
 caller does, before a kernel runs, with the same rule (every input finite; z only where its mask
 is > 0.5 when z and mask have one entry per component): the C wrappers and run loops
-(``codegen/c_writer.py``) and the CasADi-VM backend (``runtime/backends.py``). An in-kernel test
+(``codegen/c_backend/api.py``) and the CasADi-VM backend (``runtime/backends.py``). An in-kernel test
 would repeat theirs at one multiply-add per input entry (about 150 entries, 0.36k of the MARG
 step's 3k operations) on every sample.
 """

@@ -111,7 +111,7 @@ def test_only_the_documented_api_is_exported_and_everything_is_ascii(model, over
 
 def _stated_and_measured_stack(folder, model: str) -> tuple[dict[str, int], dict[str, int]]:
     """(header's *_STACK_BYTES, GCC's call graph after ``make stack``) per public function."""
-    from symkf.codegen.c_writer import stack_usage
+    from symkf.codegen.c_backend.stack import stack_usage
     proc = subprocess.run(["make", "-j2", "-C", str(folder), "stack"], capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr[-2000:]
     measured = stack_usage((folder / f"{model}_stack.ci").read_text())

@@ -83,10 +83,14 @@ def test_build_returning_none_or_not_a_model(tmp_path, body, message):
 
 
 def test_generated_name_collision_is_refused():
+    """Measurements gps and gps_run would both give cart_ekf_step_gps_run: refused at generate time."""
+    from symkf.codegen import BuildError, generate
     m = cart()
     m.measurement("gps_run", [("p2", "m", "position again", m.x[0])], sigma=[1.0])
-    with pytest.raises(ModelError, match="measurement 'gps_run' collides with the generated 'gps_run' function"):
-        m.validate()
+    with pytest.raises(BuildError, match=r"C function cart_ekf_step_gps_run would come from both kernel "
+                                         r"'ekf_step_gps' \(measurement 'gps'\) and kernel 'ekf_step_gps_run' "
+                                         r"\(measurement 'gps_run'\); rename one of the measurements"):
+        generate(m)
 
 
 def test_model_name_must_be_a_c_identifier():

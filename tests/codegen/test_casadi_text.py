@@ -1,9 +1,9 @@
-"""Issue 12: CasADi's small helpers inline in the generated units (bit-identical, fewer calls).
+"""CasADi's small helpers inline in the generated units (bit-identical, fewer calls).
 
 The UKF's weighted sums of sigma-point products stay as they were, term by term and symmetrized:
 grouping the equal weights or one triangle moved P by round-off, which the campaign's excursion
 runs amplified into Table 3 (see codegen/families/kalman.py, _sigma_covariance)."""
-from symkf.codegen.c_writer import _inline_helpers
+from symkf.codegen.c_backend.casadi_text import _inline_helpers
 
 
 def test_casadi_helpers_are_static_inline():
@@ -16,7 +16,7 @@ def test_casadi_helpers_are_static_inline():
 
 
 def test_launcher_ukf_units_call_no_helper(launcher_compiled):
-    """The generated units inline casadi_sq (138 calls per UKF prediction before issue 12)."""
+    """The generated units inline casadi_sq (there were 138 calls per UKF prediction)."""
     directory = launcher_compiled.build.directory
     text = (directory / "launcher_fn_fd_sigma_plain.c").read_text()
     assert "static inline casadi_real casadi_sq(" in text
