@@ -10,9 +10,10 @@ from __future__ import annotations
 import casadi as ca
 
 from ..spec import Arg, Bundle, Kernel
-from .casadi_text import INTERNAL_BLOCK, math_block
+from .casadi_text import math_block
 from .names import GENERATED_NOTICE, ascii_text, public_names, raw_name
 from .template_util import template_text
+
 
 def passing(arg: Arg, kernel: Kernel, run: bool = False) -> str:
     """How an input is passed in the public C signature: 'omit' (zero-size), 'value' (a scalar)
@@ -337,7 +338,7 @@ def api_unit(bundle: Bundle) -> str:
              math_block("\n".join(functions)),
              template_text("real_check.c"),
              "",
-             INTERNAL_BLOCK,
+             template_text("internal.h"),    # the entry points' visibility
              "/* The kernels' entry points (CasADi's code, one unit each: <name>.c). */",
              *prototypes,
              "",

@@ -18,7 +18,6 @@ import casadi as ca
 
 from ..spec import Bundle
 from .names import function_symbol
-from .template_util import template_text
 
 #: libm functions CasADi's code may call, each reached through a SYMKF_<NAME> macro.
 MATH_FUNCTIONS = ("sin", "cos", "tan", "asin", "acos", "atan", "atan2", "sinh", "cosh", "tanh", "asinh",
@@ -28,12 +27,6 @@ MATH_FUNCTIONS = ("sin", "cos", "tan", "asin", "acos", "atan", "atan2", "sinh", 
 #: regular expression scans a generated file fast, the alternation of 33 names with \b did not).
 _LOWER_CALL = re.compile(r"[a-z][a-z0-9]*\(")
 _MATH_MACRO = {name: f"SYMKF_{name.upper()}(" for name in MATH_FUNCTIONS}
-
-#: Visibility of the kernels' entry points (called across units, never exported from the library).
-INTERNAL_BLOCK = template_text("internal.h")
-#: casadi_real from SYMKF_FLOAT (the header says the same).
-REAL_BLOCK = template_text("real.h")
-
 
 _PREFIXED = re.compile(r"^#define (\w+) CASADI_PREFIX\((\w+)\)$", flags=re.M)
 

@@ -3,8 +3,9 @@
 Its conventions (``templates/header_conventions.h``), the return codes (:func:`status_codes`: those
 each kernel can return, read from its expression), dimensions, indices, defaults and scaling of the
 model, the model file's constants, then each kernel's prototypes with its time rule, arguments
-(unit and meaning), return codes and stack figures (placeholders until :func:`~symkf.codegen.c_backend.stack.fill_stack`).
-A float build's precision lines (:func:`precision_lines`) open the header and every unit.
+(unit and meaning), return codes and stack figures (placeholders until
+:func:`~symkf.codegen.c_backend.stack.fill_stack`). A float build's precision lines
+(:func:`precision_lines`) open the header and every unit.
 """
 from __future__ import annotations
 
@@ -14,10 +15,10 @@ import casadi as ca
 
 from ..spec import STATUS_CODES, STATUS_GATED, STATUS_NONFINITE, Arg, Bundle, Kernel
 from .api import param_list, passing, run_params, trusted_kernels
-from .casadi_text import REAL_BLOCK
 from .names import GENERATED_NOTICE, ascii_text
 from .stack import STACK_PLACEHOLDER
 from .template_util import template_text
+
 
 def _macro(name: str) -> str:
     return re.sub(r"\W", "_", name).upper()
@@ -212,7 +213,8 @@ def _constant_lines(model: str, desc: dict, taken: set[str]) -> list[str]:
 
 
 def header(bundle: Bundle, content_hash: str, compiler: str = "cc", flags: str = "") -> str:
-    """The self-contained header. Stack figures are placeholders until :func:`~symkf.codegen.c_backend.stack.fill_stack`."""
+    """The self-contained header. Stack figures are placeholders until
+    :func:`~symkf.codegen.c_backend.stack.fill_stack`."""
     model = bundle.model_name
     guard = f"SYMKF_{_macro(model)}_H"
     desc = bundle.description
@@ -222,7 +224,7 @@ def header(bundle: Bundle, content_hash: str, compiler: str = "cc", flags: str =
              f" * Content hash: {content_hash}",
              template_text("header_conventions.h").format(model=model, compiler=compiler, flags=flags),
              f"#ifndef {guard}", f"#define {guard}", "", *precision_lines(bundle),
-             REAL_BLOCK, "", template_text("export.h"), "",
+             template_text("real.h"), "", template_text("export.h"), "",
              "/* ---- Return codes ---- */"]
     for code, (name, meaning) in STATUS_CODES.items():
         lines.append(f"#ifndef {name}\n#define {name} {code} /* {meaning} */\n#endif")

@@ -10,9 +10,11 @@ from __future__ import annotations
 
 from ..spec import Bundle
 from .api import api_unit, hash_unit, public_functions
-from .casadi_text import INTERNAL_BLOCK, REAL_BLOCK, CasadiCode, math_block, plain_names
+from .casadi_text import CasadiCode, math_block, plain_names
 from .header import precision_lines
-from .names import GENERATED_NOTICE, api_file, ascii_text, hash_file
+from .names import GENERATED_NOTICE, api_file, ascii_text, check_unit_names, hash_file
+from .template_util import template_text
+
 
 def units(bundle: Bundle, content_hash: str, per_part: list[dict[str, str]] | None = None) -> dict[str, str]:
     """Every translation unit of the bundle, file name -> C text: the API unit, the hash unit, then
@@ -21,10 +23,7 @@ def units(bundle: Bundle, content_hash: str, per_part: list[dict[str, str]] | No
     model = bundle.model_name
     out = {api_file(model): api_unit(bundle), hash_file(model): hash_unit(model, content_hash),
            **function_units(bundle, per_part)}
-    clash = {file[:-2] for file in out} & set(public_functions(bundle))
-    if clash:
-        raise ValueError(f"model '{model}': the internal function(s) {sorted(clash)} would have the name of a "
-                         "public function; rename the measurement or kernel")
+    check_unit_names(model, out, public_functions(bundle))
     return out
 
 
@@ -70,6 +69,7 @@ def part_units(bundle: Bundle) -> dict[str, str]:
         text = plain_names(code.unit(number, symbols), f"{symbol}_casadi")
         units[f"{symbol}.c"] = ascii_text("\n".join([
             f"/* {GENERATED_NOTICE.format(model=model)}", about,
-            "#include <math.h>", "", *precision_lines(bundle), REAL_BLOCK, "", math_block(text), "", INTERNAL_BLOCK, "",
+            "#include <math.h>", "", *precision_lines(bundle), template_text("real.h"), "", math_block(text), "",
+            template_text("internal.h"), "",
             text]))
     return units
