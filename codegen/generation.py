@@ -14,6 +14,7 @@ from pathlib import Path
 import casadi as ca
 
 from symkf.models import Model, get_model
+from symkf.models.checks import check_parameters_used
 from . import c_writer, families  # noqa: F401  (families register themselves on import)
 from .compilation import UnitCompiler, compile_flags, compiler_identity, unit_optimization
 from .errors import BuildError
@@ -21,6 +22,11 @@ from .hashing import symkf_version
 from .kernels import FAMILIES, LONG_COMPILE, ModelFunctions, Symbols, model_kernels
 from .scaling import model_for
 from .spec import Bundle, CodegenConfig
+
+#: Filter families that see the parameters only through the model's equations: for a model with
+#: only these, a parameter no equation uses is an authoring mistake (the MARG filter's gain is a
+#: parameter of the filter).
+EQUATION_ONLY_FAMILIES = frozenset({"ekf", "ukf", "cd_ekf"})
 
 
 def default_config(model: Model) -> CodegenConfig:
@@ -51,6 +57,8 @@ def generate_validated(model: Model, config: CodegenConfig, on_part=None) -> Bun
     ``on_part(index, part)``, if given, receives each part's bundle as soon as it is made (a build
     starts compiling its units while the next part is generated); the families with the longest
     compile (:data:`~symkf.codegen.kernels.LONG_COMPILE`) are made first."""
+    if set(model.filters) <= EQUATION_ONLY_FAMILIES:
+        check_parameters_used(model)
     model = model_for(model, config)
     for family in model.filters:
         if family not in FAMILIES:

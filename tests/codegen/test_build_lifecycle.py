@@ -1,6 +1,6 @@
 """generate -> build -> load: a hash of what is generated, private build roots, verified libraries.
 
-Issue 9: an in-process edit gives new numbers (a fresh process agrees), nothing in the current
+An in-process edit gives new numbers (a fresh process agrees), nothing in the current
 directory is ever loaded, a damaged library is rebuilt (never opened), concurrent builds of two
 configurations both succeed, killed builds leave no staging folder and no compiler behind.
 """
