@@ -31,7 +31,8 @@ import casadi as ca
 import numpy as np
 
 from symkf.models import Model
-from symkf.models.base import ModelError, Variable
+from symkf.models.base import Variable
+from symkf.models.errors import ModelError
 
 
 def scaling_arrays(model: Model) -> tuple[np.ndarray, np.ndarray]:

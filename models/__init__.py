@@ -25,7 +25,8 @@ import tokenize
 import types
 from pathlib import Path
 
-from .base import Measurement, Model, ModelError, Variable
+from .base import Measurement, Model, Variable
+from .errors import ModelError
 
 __all__ = ["Measurement", "Model", "ModelError", "Variable", "get_model", "PAPER_MODELS"]
 

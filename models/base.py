@@ -8,22 +8,16 @@ CasADi ``SX``; nothing here knows about C. Errors name the state, equation or sh
 """
 from __future__ import annotations
 
-import re
 from dataclasses import dataclass, field
 from typing import Sequence
 
 import casadi as ca
 import numpy as np
 
-
-_C_IDENTIFIER = re.compile(r"[A-Za-z][A-Za-z0-9_]{0,47}")
-_C_KEYWORDS = frozenset("""auto break case char const continue default do double else enum extern float for goto if
-    inline int long register restrict return short signed sizeof static struct switch typedef union unsigned void
-    volatile while""".split())
-
-
-class ModelError(ValueError):
-    """A model declaration is inconsistent; the message names the symbol or equation at fault."""
+from . import checks
+from .checks import scalar_expression
+from .errors import ModelError
+from .identifiers import check_measurement_name, check_model_name
 
 
 @dataclass(frozen=True)
@@ -238,7 +232,6 @@ class Model:
         ``allow_nondifferentiable``: state names (or True for all) whose equation may apply floor,
         sign, fabs, if_else... to states on purpose (otherwise :meth:`validate` refuses it).
         """
-        from .checks import scalar_expression
         if not isinstance(derivatives, dict):
             raise ModelError(f"model '{self.name}': set_dynamics() takes a dict {{state name: d/dt expression}}, "
                              f"not a {type(derivatives).__name__}")
@@ -279,7 +272,6 @@ class Model:
         step of length ``dt`` (a symbol the caller made). Filters then use φ instead of integrating
         f (codegen config ``manifold_step``); held noise has discrete covariance Q/dt
         (``manifold_noise = "held"``). f stays the model's continuous dynamics (truth, checks)."""
-        from .checks import scalar_expression
         if self.f is None:
             raise ModelError(f"model '{self.name}': call set_dynamics() before set_discrete_step()")
         if not isinstance(dt, ca.SX) or not dt.is_symbolic() or dt.numel() != 1:
@@ -318,9 +310,7 @@ class Model:
         (4 outputs, scalar-last); ``allow_nondifferentiable``: h may apply floor, sign, fabs,
         if_else... to states on purpose.
         """
-        from .checks import scalar_expression
-        if not isinstance(name, str) or not _C_IDENTIFIER.fullmatch(name):
-            raise ModelError(f"model '{self.name}': measurement name {name!r} must be a C identifier")
+        check_measurement_name(self.name, name)
         if name in self.measurements:
             raise ModelError(f"model '{self.name}': measurement '{name}' is declared twice")
         pending = self._pending_q
@@ -368,10 +358,7 @@ class Model:
     # ----------------------------------------------------------------- checks
     def validate(self) -> "Model":
         """Raise ModelError if the model is incomplete; return self for chaining."""
-        if not isinstance(self.name, str) or not _C_IDENTIFIER.fullmatch(self.name) or self.name in _C_KEYWORDS:
-            raise ModelError(f"model name {self.name!r} must be a C identifier (letters, digits, '_', not "
-                             "starting with a digit or '_', at most 48 characters, not a C keyword): it names "
-                             "the build folder and every C function")
+        check_model_name(self.name)
         if self.f is None:
             raise ModelError(f"model '{self.name}': set_dynamics() was never called")
         if not self.states:
@@ -379,7 +366,6 @@ class Model:
         events = np.asarray(self.events, dtype=float)
         if not np.all(np.isfinite(events)) or np.any(np.diff(events) <= 0):
             raise ModelError(f"model '{self.name}': events must be finite and strictly increasing, got {self.events}")
-        from . import checks
         checks.check_equations(self)
         checks.check_unused(self)
         return self

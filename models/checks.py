@@ -10,9 +10,9 @@ or ``measurement '<name>'``) and the symbol at fault:
   says so (``set_dynamics(..., allow_nondifferentiable=["v"])``, ``measurement(...,
   allow_nondifferentiable=True)``); operations on time, inputs or parameters are always fine;
 - a NaN or infinite constant in an equation;
-- a process noise or a parameter (model-wide or a measurement's own) that no equation uses (a
-  model-wide parameter only for models whose filters read parameters through f and h alone, the
-  EKF, UKF and continuous-discrete EKF: the MARG filter's gain is a parameter of the filter);
+- a process noise or a measurement's own parameter that no equation uses; a model-wide parameter
+  no equation uses (:func:`check_parameters_used`, which codegen runs where the filters read
+  parameters through f and h alone);
 - measurement names whose generated C names collide (``rb`` and ``rb_run``: ``_run`` and ``_v``
   are suffixes of generated functions).
 Expression types (MX, lists, strings, vectors) and sigma <= 0 are checked where they are given,
@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING
 
 import casadi as ca
 
-from .base import ModelError
+from .errors import ModelError
 
 if TYPE_CHECKING:
     from .base import Model
@@ -34,8 +34,6 @@ NONDIFFERENTIABLE = {ca.OP_FLOOR: "floor", ca.OP_CEIL: "ceil", ca.OP_SIGN: "sign
                      ca.OP_FMOD: "fmod", ca.OP_REMAINDER: "remainder", ca.OP_FMIN: "fmin", ca.OP_FMAX: "fmax",
                      ca.OP_COPYSIGN: "copysign", ca.OP_IF_ELSE_ZERO: "if_else", ca.OP_LT: "a comparison (<)",
                      ca.OP_LE: "a comparison (<=)", ca.OP_EQ: "a comparison (==)", ca.OP_NE: "a comparison (!=)"}
-#: Filter families that see the parameters only through the model's equations.
-EQUATION_ONLY_FAMILIES = frozenset({"ekf", "ukf", "cd_ekf"})
 
 
 def scalar_expression(model: str, what: str, value) -> ca.SX:
@@ -102,17 +100,15 @@ def _nodes(expr: ca.SX):
 
 
 def check_unused(model: "Model") -> None:
-    """Every noise appears in the dynamics; every parameter in some equation; every measurement
-    depends on the state and uses each of its parameters."""
+    """Every noise appears in the dynamics; every measurement depends on the state and uses each
+    of its parameters and noises."""
     in_f = {s.name() for s in ca.symvar(model.f)}
     for var, sym in zip(model.noises, model._symbols["w"]):
         if sym.name() not in in_f:
             raise ModelError(f"model '{model.name}': noise '{var.name}' is declared but the dynamics do not use it")
-    used = set(in_f)
     states = {s.name() for s in ca.vertsplit(model.x)}
     for meas in model.measurements.values():
         in_h = {s.name() for s in ca.symvar(meas.h)}
-        used |= in_h
         if not in_h & states:
             raise ModelError(f"model '{model.name}': measurement '{meas.name}' does not depend on the state "
                              f"(its outputs use {sorted(in_h) or 'no symbol'}): a filter could learn nothing from it")
@@ -121,8 +117,15 @@ def check_unused(model: "Model") -> None:
                 if sym.name() not in in_h:
                     raise ModelError(f"model '{model.name}': measurement '{meas.name}' {kind} '{var.name}' is "
                                      "declared but not used by that measurement")
-    if not set(model.filters) <= EQUATION_ONLY_FAMILIES:
-        return
+
+
+def check_parameters_used(model: "Model") -> None:
+    """Every model-wide parameter appears in some equation. Not part of :meth:`Model.validate`:
+    it holds only where the filters read parameters through f and h alone, which codegen knows
+    (it runs this check for those filters; a filter's own gain may be a parameter too)."""
+    used = {s.name() for s in ca.symvar(model.f)}
+    for meas in model.measurements.values():
+        used |= {s.name() for s in ca.symvar(meas.h)}
     for var, sym in zip(model.params, model._symbols["p"]):
         if sym.name() not in used:
             raise ModelError(f"model '{model.name}': parameter '{var.name}' is declared but no equation uses it")

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import time
 
-from symkf.codegen import CompilerNotFound, FilterSpec, build_validated, generate, make_config
+from symkf.codegen import CompilerNotFound, FilterSpec, build_validated, config_for, generate_validated
 from symkf.models import get_model
 from .backends import CompiledBackend, StaleLibraryError, SymkfError, VirtualMachineBackend
 from .filters import Filter, KalmanFilter, RunResult
@@ -64,7 +64,7 @@ def load(model, backend: str = "auto", **overrides) -> CompiledModel:
             if backend == "compiled":
                 raise
             return _vm_model(model, reason=str(exc), **overrides)
-        compiled = CompiledBackend.from_directory(result.directory)
+        compiled = CompiledBackend.from_build(result)
         return CompiledModel(model.name, compiled, compiled.manifest["description"],
                              [FilterSpec.from_dict(f) for f in compiled.manifest["filters"]], result)
     return _vm_model(model, reason="", **overrides)
@@ -73,11 +73,11 @@ def load(model, backend: str = "auto", **overrides) -> CompiledModel:
 def _vm_model(model, reason: str, **overrides) -> CompiledModel:
     """The VM backend; refused for a single-precision configuration: CasADi's VM evaluates in
     double only, so it would give double's numbers under a float build's name."""
-    config = make_config(model, **overrides)
+    config = config_for(model, **overrides)                          # get_model validated it
     if config.precision != "double":
         why = f" ({reason})" if reason else ""
         error = CompilerNotFound if reason else ValueError
         raise error(f"precision='{config.precision}' needs the compiled C: CasADi's virtual machine evaluates "
                     f"in double only{why}")
-    bundle = generate(model, config)
+    bundle = generate_validated(model, config)
     return CompiledModel(model.name, VirtualMachineBackend(bundle, reason), bundle.description, bundle.filters)

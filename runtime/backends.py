@@ -16,7 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from symkf.codegen.build import read_manifest, verified_library
+from symkf.codegen.lifecycle import BuildResult
+from symkf.codegen.manifest import verified_manifest
 from symkf.codegen.c_backend.api import passing
 from symkf.codegen.spec import STATUS_CODES, STATUS_GATED, STATUS_NONFINITE, Arg, Bundle, Kernel
 
@@ -101,12 +102,20 @@ class CompiledBackend:
     @classmethod
     def from_directory(cls, directory: Path) -> "CompiledBackend":
         """The library of a build folder, opened only if its SHA-256 matches the manifest's."""
-        manifest = read_manifest(directory)
-        library = verified_library(directory, manifest) if manifest is not None else None
-        if library is None:
+        manifest = verified_manifest(directory)
+        if manifest is None:
             raise StaleLibraryError(f"{directory}: the library is missing, damaged or not the one its manifest "
                                     "records (SHA-256); it was not opened. Rebuild with `symkf build <model>`")
-        return cls(library, manifest)
+        return cls(directory / manifest["hashed_library"], manifest)
+
+    @classmethod
+    def from_build(cls, result: BuildResult) -> "CompiledBackend":
+        """The library of a build just made or checked (:func:`symkf.codegen.build_model`): the
+        manifest it carries was read and its library hashed then, so neither is done again."""
+        if not result.record:
+            raise StaleLibraryError(f"{result.directory}: no readable manifest; it was not opened. "
+                                    "Rebuild with `symkf build <model>`")
+        return cls(result.library, result.record)
 
     def bind(self, kernel: str, buffers: dict[str, np.ndarray], entry: str = "v") -> "BoundCall":
         """``<model>_<kernel>_<entry>`` (the binding entry ``_v``, or ``unchecked_v``: no test of the

@@ -8,7 +8,7 @@ the extension accepts only calls the contract accepts, writes the same values, a
 (having written nothing) for anything else, which the Python path then accepts or refuses.
 
 The extension is compiled once per machine and Python, like a model library: with the C compiler
-of :func:`symkf.codegen.build.compiler` and Python's headers, into ``<build root>/_fastcall/<key>/``
+of :func:`symkf.codegen.compilation.compiler` and Python's headers, into ``<build root>/_fastcall/<key>/``
 (key: SHA-256 of the C source, compiler, Python ABI and flags), its SHA-256 checked before it is
 imported. Without a compiler, without Python's headers, on the CasADi-VM backend or with
 ``SYMKF_FASTCALL=0``, every call takes the Python path (same results, slower).
@@ -28,8 +28,12 @@ from pathlib import Path
 
 import numpy
 
-from symkf.codegen.build import (BuildError, _lock, compiler, compiler_identity, private_root, run_compiler,
-                                 sha256_file)
+from symkf.codegen.build_folders import private_root
+from symkf.codegen.compilation import compiler, compiler_identity
+from symkf.codegen.compiler_pool import run_compiler
+from symkf.codegen.errors import BuildError
+from symkf.codegen.lifecycle import _lock
+from symkf.codegen.manifest import sha256_file
 from symkf.codegen.spec import STATUS_GATED
 
 SOURCE = Path(__file__).resolve().parent / "_fastcall.c"

@@ -10,7 +10,7 @@ import re
 import subprocess
 from pathlib import Path
 
-from symkf.codegen.build import compiler
+from symkf.codegen.compilation import compiler
 
 _ANNOTATED_LINE = re.compile(r"^\s*([\d,]+) \([^)]*\)\s+\S*?:(\w+)", re.M)
 

@@ -50,7 +50,7 @@ def build_loop(repeats: int) -> dict:
 
 def compile_levels(levels=("-O1", "-O2", "-O3")) -> dict:
     """Compile the generated C at several -O levels (strict flags as in the build)."""
-    from symkf.codegen.build import build_model
+    from symkf.codegen.lifecycle import build_model
     from symkf.codegen.c_backend.makefile import STRICT_FLAGS
     result = build_model(MODEL)
     sources = [str(result.directory / name) for name in json.loads(result.manifest.read_text())["sources"]]

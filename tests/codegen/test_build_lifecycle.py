@@ -1,6 +1,6 @@
 """generate -> build -> load: a hash of what is generated, private build roots, verified libraries.
 
-Issue 9: an in-process edit gives new numbers (a fresh process agrees), nothing in the current
+An in-process edit gives new numbers (a fresh process agrees), nothing in the current
 directory is ever loaded, a damaged library is rebuilt (never opened), concurrent builds of two
 configurations both succeed, killed builds leave no staging folder and no compiler behind.
 """
@@ -16,7 +16,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from symkf.codegen import BuildError, CompilerNotFound, build, build_model, compiler, generated_hash, make_config
+from symkf.codegen import BuildError, CompilerNotFound, build_model, compiler, generated_hash, make_config
+from symkf.codegen import build_folders, compiler_pool, hashing
+from symkf.codegen.compilation import UnitCompiler
+from symkf.codegen.manifest import sha256_file
 from symkf.models import ModelError, get_model
 from symkf.models import launcher as L
 from symkf.runtime import StaleLibraryError, load
@@ -43,7 +46,7 @@ def test_unchanged_build_is_up_to_date(launcher_compiled):
     assert result.up_to_date and result.library.exists()
     manifest = json.loads(result.manifest.read_text())
     assert manifest["content_hash"] == result.content_hash
-    assert manifest["library_sha256"] == build.sha256_file(result.library)
+    assert manifest["library_sha256"] == sha256_file(result.library)
     assert {k["name"] for k in manifest["kernels"]} >= {"ekf_step_radar", "ukf_step_radar", "jac_fd", "jac_h_radar"}
     assert manifest["kernels"][0]["inputs"][0] == {"name": "t", "shape": [1, 1], "unit": "s",
                                                    "description": "time at the start of the step"}
@@ -105,8 +108,8 @@ def test_planted_library_in_the_current_directory_is_never_loaded(tmp_path, writ
     monkeypatch.chdir(tmp_path / "cwd")
     monkeypatch.delenv("SYMKF_BUILD_DIR")
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
-    monkeypatch.setattr(build, "development_checkout", lambda: None)
-    assert build.build_root() == tmp_path / "cache" / "symkf"
+    monkeypatch.setattr(build_folders, "development_checkout", lambda: None)
+    assert build_folders.build_root() == tmp_path / "cache" / "symkf"
     compiled = load(str(path))
     assert Path(compiled.backend.library_path).parent == tmp_path / "cache" / "symkf" / "tiny"
     assert (planted / "libtiny.so").read_bytes() == b"\x7fELF planted"
@@ -179,10 +182,10 @@ def test_concurrent_builds_of_two_configurations_both_succeed(tmp_path, write_mo
 def test_killed_build_leaves_no_compiler_running(tmp_path, private_build, started_by):
     """The guard shell learns of the build's death by PR_SET_PDEATHSIG, set by util-linux's
     setpriv where it has --pdeathsig (the compiler then starts by vfork), else in the child."""
-    if started_by == "setpriv" and not build._pdeathsig_wrapper():
+    if started_by == "setpriv" and not compiler_pool._pdeathsig_wrapper():
         pytest.skip("no setpriv with --pdeathsig here")
-    fallback = "build._pdeathsig_wrapper = lambda: (); " if started_by == "preexec_fn" else ""
-    code = f"from symkf.codegen import build; {fallback}build.build_model('launcher', rk4_substeps=3)"
+    fallback = "compiler_pool._pdeathsig_wrapper = lambda: (); " if started_by == "preexec_fn" else ""
+    code = f"from symkf.codegen import build_model, compiler_pool; {fallback}build_model('launcher', rk4_substeps=3)"
     proc = subprocess.Popen([sys.executable, "-c", code])
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline and not _processes_inside(private_build):
@@ -317,7 +320,7 @@ def test_a_unit_rewritten_while_it_compiles_is_linked_from_its_final_text(privat
     folder = private_build / "staging"
     folder.mkdir(parents=True)
     unit = "int value_{0}(void);\nint value_{0}(void) {{ return {1}; }}\n"
-    with build.UnitCompiler(folder, compiler(), make_config("launcher"), "none.h") as units:
+    with UnitCompiler(folder, compiler(), make_config("launcher"), "none.h") as units:
         units.add({"a.c": unit.format("a", 1), "b.c": unit.format("b", 2)})
         units.add({"a.c": unit.format("a", 3)})
         objects, compiled = units.finish(["a.c"])
@@ -350,3 +353,47 @@ def test_header_constants_come_from_the_file_built_not_the_package(tmp_path, wri
     second = build_model(str(path))
     assert second.content_hash != first.content_hash
     assert "#define LAUNCHER_DRAG 0.25" in (second.directory / "launcher.h").read_text()
+
+
+def test_every_codegen_module_is_hashed_and_an_edit_of_one_changes_the_hash(tmp_path, write_model, monkeypatch):
+    """The content hash covers the source of every codegen module but the families (those a
+    model asks for are added per model): a comment edited in any of them invalidates the cache."""
+    codegen = Path(hashing.__file__).parent
+    files = {".".join(("symkf.codegen",) + p.relative_to(codegen).with_suffix("").parts)
+             for p in codegen.rglob("*.py") if p.name != "__init__.py" and "families" not in p.parts}
+    assert files <= set(hashing.FRAMEWORK_MODULES)
+    model = get_model(str(write_model(tmp_path / "tracker.py")))
+    config = make_config(model)
+    before = hashing.generated_hash(model, config)
+    for name in ("symkf.codegen.lifecycle", "symkf.codegen.manifest", "symkf.codegen.compiler_pool"):
+        module = sys.modules[name]
+        edited = tmp_path / f"{name}.py"
+        edited.write_text(Path(module.__file__).read_text() + "# an edited comment\n")
+        with monkeypatch.context() as patch:
+            patch.setattr(module, "__file__", str(edited))
+            assert hashing.generated_hash(model, config) != before, name
+    assert hashing.generated_hash(model, config) == before
+
+
+def test_a_load_reads_the_manifest_once_and_hashes_the_library_once(launcher_compiled, monkeypatch):
+    from symkf.codegen import manifest
+    calls = {"read": 0, "hash": 0}
+
+    def counted(function, key):
+        def call(*args):
+            calls[key] += 1
+            return function(*args)
+        return call
+    monkeypatch.setattr(manifest, "read_manifest", counted(manifest.read_manifest, "read"))
+    monkeypatch.setattr(manifest, "sha256_file", counted(manifest.sha256_file, "hash"))
+    assert load("launcher").build.up_to_date
+    assert calls == {"read": 1, "hash": 1}
+
+
+def test_the_vm_backend_validates_the_model_once(tmp_path, write_model, monkeypatch):
+    from symkf.models.base import Model
+    validated = []
+    original = Model.validate
+    monkeypatch.setattr(Model, "validate", lambda self: validated.append(self.name) or original(self))
+    assert load(str(write_model(tmp_path / "tracker.py")), backend="casadi-vm").backend.kind == "casadi-vm"
+    assert validated == ["tiny"]

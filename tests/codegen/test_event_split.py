@@ -8,7 +8,8 @@ from symkf.codegen import make_config
 from symkf.codegen.discretize import discrete_dynamics
 from symkf.codegen.kernels import ModelFunctions
 from symkf.models import get_model
-from symkf.models.base import Model, ModelError
+from symkf.models.base import Model
+from symkf.models.errors import ModelError
 from symkf.scenarios.launcher.truth import propagate
 
 

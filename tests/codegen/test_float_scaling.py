@@ -8,7 +8,8 @@ from symkf.codegen import make_config
 from symkf.codegen.discretize import EVENT_INSET, event_inset
 from symkf.codegen.scaling import scaled_model, scaling_arrays
 from symkf.models import get_model
-from symkf.models.base import Model, ModelError
+from symkf.models.base import Model
+from symkf.models.errors import ModelError
 
 
 def _cart(**state_options) -> Model:

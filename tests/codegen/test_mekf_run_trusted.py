@@ -144,7 +144,7 @@ def test_the_step_function_and_its_variants_equal_the_general_step(compiled, rec
 def test_a_variant_pattern_outside_the_measurement_is_refused():
     from symkf.codegen import generate
     from symkf.codegen.spec import ConfigError
-    from symkf.codegen.build import default_config
+    from symkf.codegen.generation import default_config
     from symkf.models import get_model
     config = default_config(get_model("marg_ekf")).with_overrides(manifold_run_variants=((7,),))
     with pytest.raises(ConfigError, match="manifold_run_variants"):

@@ -11,8 +11,10 @@ from pathlib import Path
 
 import pytest
 
-from symkf.codegen import build, generate, make_config
+from symkf.codegen import generate, generate_validated, make_config
 from symkf.codegen.c_backend import units
+from symkf.codegen.compiler_pool import CompilerPool
+from symkf.models import get_model
 from symkf.codegen.kernels import LONG_COMPILE
 
 
@@ -32,8 +34,8 @@ def test_parts_are_the_models_own_kernels_then_each_family_in_the_models_order(l
 
 def test_long_compile_families_are_made_first_and_reported_with_their_place(launcher_bundle):
     seen = []
-    bundle = build._generate(build.get_model("launcher"), make_config("launcher"),
-                             lambda index, part: seen.append((index, part.kernels[0].name)))
+    bundle = generate_validated(get_model("launcher"), make_config("launcher"),
+                                lambda index, part: seen.append((index, part.kernels[0].name)))
     assert seen == [(0, "f"), (2, "ukf_predict"), (1, "ekf_predict")]
     assert [k.name for k in bundle.kernels] == [k.name for k in launcher_bundle.kernels]
 
@@ -76,7 +78,7 @@ def _wait_for_line(path: Path, word: str, timeout: float = 30.0) -> None:
 
 def test_queued_compiles_start_longest_first(tmp_path):
     """One slot: the first command runs, the queued ones start by priority (a unit's length)."""
-    pool = build.CompilerPool(tmp_path, jobs=1, cores=2)
+    pool = CompilerPool(tmp_path, jobs=1, cores=2)
     pool.submit(_after_go("first"), priority=10 ** 6)
     for word, priority in (("small", 10), ("large", 5000), ("medium", 300)):
         pool.submit(["sh", "-c", f"echo {word} >> order.txt"], priority=priority)
@@ -91,7 +93,7 @@ def test_a_compile_longer_than_every_running_one_starts_at_once_if_a_core_is_fre
     def run(cores):
         for name in ("order.txt", "go"):
             (tmp_path / name).unlink(missing_ok=True)
-        pool = build.CompilerPool(tmp_path, jobs=1, cores=cores)
+        pool = CompilerPool(tmp_path, jobs=1, cores=cores)
         pool.submit(_after_go("running"), priority=100)
         pool.submit(["sh", "-c", "echo shorter >> order.txt"], priority=10)
         pool.submit(["sh", "-c", "echo longest >> order.txt"], priority=1000)
