@@ -56,14 +56,15 @@ import casadi as ca
 from symkf.models import Model, get_model
 from . import c_writer, families  # noqa: F401  (families register themselves on import)
 from .discretize import continuous_dynamics, measurement_function
-from .kernels import FAMILIES, LONG_COMPILE, ModelFunctions, Symbols, model_kernels
+from .families.framework import FAMILIES, LONG_COMPILE, model_kernels
+from .model_functions import ModelFunctions, Symbols
 from .scaling import model_for
 from .spec import Bundle, CodegenConfig, ConfigError, register_options
 
 CODEGEN_DIR = Path(__file__).resolve().parent
 #: Codegen modules every model's code depends on (their source is part of every content hash).
-FRAMEWORK_MODULES = ("symkf.codegen.kernels", "symkf.codegen.discretize", "symkf.codegen.linalg",
-                     "symkf.codegen.spec", "symkf.codegen.c_writer", "symkf.codegen.build",
+FRAMEWORK_MODULES = ("symkf.codegen.families.framework", "symkf.codegen.model_functions", "symkf.codegen.discretize",
+                     "symkf.codegen.linalg", "symkf.codegen.spec", "symkf.codegen.c_writer", "symkf.codegen.build",
                      "symkf.codegen.scaling", "symkf.models.base")
 #: Files of a bundle exported by ``symkf build X --out DIR`` (``{name}`` = the model's name),
 #: besides the C units the manifest lists under "sources".
@@ -244,7 +245,7 @@ def _generate(model: Model, config: CodegenConfig, on_part=None) -> Bundle:
     in parts: the model's own (f, f_d, F, h, H), then each filter family's, in the model's order.
     ``on_part(index, part)``, if given, receives each part's bundle as soon as it is made (a build
     starts compiling its units while the next part is generated); the families with the longest
-    compile (:data:`~symkf.codegen.kernels.LONG_COMPILE`) are made first."""
+    compile (:data:`~symkf.codegen.families.framework.LONG_COMPILE`) are made first."""
     model = model_for(model, config)
     for family in model.filters:
         if family not in FAMILIES:

@@ -30,6 +30,8 @@ import numpy as np
 from symkf.models.base import Model
 
 FUNCTION_OPTIONS = {"cse": True, "allow_duplicate_io_names": True}
+#: The options of a function whose C is written once and called, not inlined into its callers.
+CALLED_OPTIONS = dict(FUNCTION_OPTIONS, never_inline=True)
 #: s: how far before an event the time argument is held on the segment that ends there (the
 #: truth simulator uses the same inset, scenarios/launcher/truth.py).
 EVENT_INSET = 1e-6

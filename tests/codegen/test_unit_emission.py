@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from symkf.codegen import build, c_writer, generate, make_config
-from symkf.codegen.kernels import LONG_COMPILE
+from symkf.codegen.families.framework import LONG_COMPILE
 
 
 @pytest.fixture(scope="module")
