@@ -58,12 +58,6 @@ def continuous_dynamics(model: Model) -> ca.Function:
                        ["t", "x", "u", "p", "w"], ["xdot"], FUNCTION_OPTIONS)
 
 
-def rk4(f, t, dt, x, u, p, w, substeps: int, latest=None):
-    """Symbolic RK4 of dx/dt = f(t, x, u, p, w) from t to t + dt in ``substeps`` steps; the time
-    argument of f is capped at ``latest`` when given (the segment before an event)."""
-    return integrate(f, t, dt, x, u, p, w, substeps, "rk4", latest)
-
-
 def integrate(f, t, dt, x, u, p, w, substeps: int, method: str = "rk4", latest=None, y0=None):
     """``substeps`` steps of RK4 or explicit Euler from t to t + dt (no event handling).
 

@@ -3,6 +3,10 @@
 A *kernel* is one CasADi Function that becomes one C entry point. Its last output is always a
 scalar ``status`` (0 = success, otherwise one of :data:`STATUS_CODES`); the C wrapper turns it
 into the return code and leaves every output untouched on failure.
+
+Build settings: :class:`CodegenConfig`, whose ``extra`` options are declared by their readers as
+frozen dataclasses (:func:`declare_options`, a family's through ``register_family``), each field
+one option with its type, default and meaning; :func:`codegen_options` lists them all.
 """
 from __future__ import annotations
 

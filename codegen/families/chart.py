@@ -18,12 +18,12 @@ therefore a *body-frame* (right) perturbation — Solà, "Quaternion kinematics 
 Kalman filter" (2017), eq (177) local error; Markley, "Attitude error representations for
 Kalman filtering", JGCD 26(2) 2003, with the rotation vector as the error parametrisation.
 
-**Options** (:class:`ManifoldOptions`, codegen config ``manifold_chart/_side/_step/_noise/_update/_transition``, a
-model's own in ``Model.codegen_defaults``): the error may instead be the vector part δp of
-δq = [δp; √(1 - |δp|²)] (paper 000 eqs (34), (41), (52); half-angle units; |δp| >= 1 is
-SYMKF_ERR_DOMAIN), on the left (δq ⊗ q̂, reference frame) instead of the right; the step may be
-the model's exact one (``Model.set_discrete_step``) instead of RK4; the process noise may be
-*held* over the step inside that step (Q_d = G_d (Q/dt) G_dᵀ, paper 000 eq (29)).
+**Options** (:class:`ManifoldOptions`, codegen config
+``manifold_chart/_side/_step/_noise/_update/_transition``, a model's own in ``Model.codegen_defaults``):
+the error may instead be the vector part δp of δq = [δp; √(1 - |δp|²)] (paper 000 eqs (34), (41),
+(52); half-angle units; |δp| >= 1 is SYMKF_ERR_DOMAIN), on the left (δq ⊗ q̂, reference frame)
+instead of the right; the step may be the model's exact one (``Model.set_discrete_step``) instead
+of RK4; the process noise may be *held* over the step inside that step (Q_d = G_d (Q/dt) G_dᵀ, paper 000 eq (29)).
 ``models/attitude.py`` sets paper 000's options.
 
 Quaternion mean without LAPACK (Markley et al., "Averaging quaternions", JGCD 30(4) 2007; paper
