@@ -23,7 +23,7 @@ from .c_backend import makefile as c_makefile, stack as c_stack
 from .compiler_pool import CompilerPool, run_compiler, run_compilers
 from .errors import BuildError, CompilerNotFound
 from .manifest import sha256_file
-from .spec import CodegenConfig, ConfigError, register_options
+from .spec import CodegenConfig, ConfigError, declare_options, option
 
 
 def compiler() -> str:
@@ -52,7 +52,15 @@ def compile_flags(config: CodegenConfig, unit: str = "") -> list[str]:
             + c_makefile.precision_flags(config))
 
 
-register_options("unit_optimization")
+@dataclass(frozen=True)
+class UnitOptions:
+    """Per-unit compiler flags (read by :func:`unit_optimization`)."""
+
+    unit_optimization: dict = option(None, "{shell pattern of unit file names: -O flags} for those units "
+                                           "(default: every unit gets ``optimization``)")
+
+
+declare_options(UnitOptions, "symkf.codegen.compilation")
 
 
 def unit_optimization(config: CodegenConfig, unit: str = "") -> str:

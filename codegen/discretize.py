@@ -30,6 +30,8 @@ import numpy as np
 from symkf.models.base import Model
 
 FUNCTION_OPTIONS = {"cse": True, "allow_duplicate_io_names": True}
+#: The options of a function whose C is written once and called, not inlined into its callers.
+CALLED_OPTIONS = dict(FUNCTION_OPTIONS, never_inline=True)
 #: s: how far before an event the time argument is held on the segment that ends there (the
 #: truth simulator uses the same inset, scenarios/launcher/truth.py).
 EVENT_INSET = 1e-6
@@ -54,12 +56,6 @@ def continuous_dynamics(model: Model) -> ca.Function:
     """f(t, x, u, p, w) -> dx/dt."""
     return ca.Function("f", [model.t, model.x, model.u, model.p, model.w], [model.f],
                        ["t", "x", "u", "p", "w"], ["xdot"], FUNCTION_OPTIONS)
-
-
-def rk4(f, t, dt, x, u, p, w, substeps: int, latest=None):
-    """Symbolic RK4 of dx/dt = f(t, x, u, p, w) from t to t + dt in ``substeps`` steps; the time
-    argument of f is capped at ``latest`` when given (the segment before an event)."""
-    return integrate(f, t, dt, x, u, p, w, substeps, "rk4", latest)
 
 
 def integrate(f, t, dt, x, u, p, w, substeps: int, method: str = "rk4", latest=None, y0=None):

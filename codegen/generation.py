@@ -21,7 +21,8 @@ from .c_backend.names import check_c_names
 from .compilation import UnitCompiler, compile_flags, compiler_identity, unit_optimization
 from .errors import BuildError
 from .hashing import symkf_version
-from .kernels import FAMILIES, LONG_COMPILE, ModelFunctions, Symbols, model_kernels
+from .families.framework import FAMILIES, LONG_COMPILE, model_kernels
+from .model_functions import ModelFunctions, Symbols
 from .scaling import model_for
 from .spec import Bundle, CodegenConfig
 
@@ -58,7 +59,7 @@ def generate_validated(model: Model, config: CodegenConfig, on_part=None) -> Bun
     in parts: the model's own (f, f_d, F, h, H), then each filter family's, in the model's order.
     ``on_part(index, part)``, if given, receives each part's bundle as soon as it is made (a build
     starts compiling its units while the next part is generated); the families with the longest
-    compile (:data:`~symkf.codegen.kernels.LONG_COMPILE`) are made first."""
+    compile (:data:`~symkf.codegen.families.framework.LONG_COMPILE`) are made first."""
     if set(model.filters) <= EQUATION_ONLY_FAMILIES:
         check_parameters_used(model)
     model = model_for(model, config)

@@ -26,7 +26,7 @@ from .c_backend import makefile as c_makefile
 from .compilation import compiler_identity
 from .discretize import continuous_dynamics, measurement_function
 from .errors import BuildError
-from .kernels import FAMILIES
+from .families.framework import FAMILIES
 from .scaling import model_for
 from .spec import CodegenConfig
 
@@ -38,7 +38,8 @@ FRAMEWORK_MODULES = ("symkf.codegen.build_folders", "symkf.codegen.c_backend.api
                      "symkf.codegen.c_backend.stack", "symkf.codegen.c_backend.template_util", "symkf.codegen.c_backend.units",
                      "symkf.codegen.compilation",
                      "symkf.codegen.compiler_pool", "symkf.codegen.discretize", "symkf.codegen.errors",
-                     "symkf.codegen.generation", "symkf.codegen.hashing", "symkf.codegen.kernels",
+                     "symkf.codegen.generation", "symkf.codegen.hashing", "symkf.codegen.families.framework",
+                     "symkf.codegen.model_functions",
                      "symkf.codegen.lifecycle", "symkf.codegen.linalg", "symkf.codegen.manifest",
                      "symkf.codegen.scaling", "symkf.codegen.spec", "symkf.models.base")
 

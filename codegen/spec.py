@@ -3,10 +3,15 @@
 A *kernel* is one CasADi Function that becomes one C entry point. Its last output is always a
 scalar ``status`` (0 = success, otherwise one of :data:`STATUS_CODES`); the C wrapper turns it
 into the return code and leaves every output untouched on failure.
+
+Build settings: :class:`CodegenConfig`, whose ``extra`` options are declared by their readers as
+frozen dataclasses (:func:`declare_options`, a family's through ``register_family``), each field
+one option with its type, default and meaning; :func:`codegen_options` lists them all.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+import typing
+from dataclasses import dataclass, field, fields, replace
 
 import casadi as ca
 
@@ -115,14 +120,87 @@ class ConfigError(ValueError):
     """A codegen option that is unknown or has a value its reader does not accept."""
 
 
-#: Codegen options beyond CodegenConfig's fields. Each module that reads one with
-#: ``CodegenConfig.get`` declares it here through :func:`register_options`.
-OPTION_KEYS: set[str] = {"precision", "scaling", "split_events"}
+@dataclass(frozen=True)
+class Option:
+    """One codegen option beyond CodegenConfig's fields, as its readers declare it.
+
+    Attributes:
+        name: the key of ``CodegenConfig.with_overrides`` and ``CodegenConfig.get``.
+        type: the accepted type (a class or a union; ``object``: any value).
+        default: the value used when the option is not set (None: derived, see ``meaning``).
+        meaning: one line for the documentation and the ``symkf options`` listing.
+        readers: who reads it (a family, a codegen module).
+    """
+
+    name: str
+    type: object
+    default: object
+    meaning: str
+    readers: tuple[str, ...] = ()
+
+    def accepts(self, value) -> bool:
+        """True if ``value`` has the declared type (a bool is not an int)."""
+        if self.type is object:
+            return True
+        if isinstance(value, bool) and not _admits_bool(self.type):
+            return False
+        return isinstance(value, self.type)
+
+    @property
+    def type_name(self) -> str:
+        return getattr(self.type, "__name__", None) or str(self.type)
 
 
-def register_options(*keys: str) -> None:
-    """Declare option keys read by a codegen module (so that ``with_overrides`` accepts them)."""
-    OPTION_KEYS.update(keys)
+def _admits_bool(kind) -> bool:
+    return kind is bool or bool in getattr(kind, "__args__", ())
+
+
+#: Codegen options beyond CodegenConfig's fields, by name: each module that reads one declares it
+#: with :func:`declare_options` (a frozen dataclass whose fields are the options).
+OPTIONS: dict[str, Option] = {}
+
+
+def option(default, meaning: str):
+    """A field of an options dataclass: its default and its one-line meaning (the type is the
+    field's annotation)."""
+    return field(default=default, metadata={"meaning": meaning})
+
+
+def declare_options(options: type, reader: str, prefix: str = "") -> None:
+    """Declare every field of the frozen dataclass ``options`` as the codegen option
+    ``<prefix><field>``, read by ``reader``. The same option declared again (another family
+    reading it) adds its reader; a different type or default is an error."""
+    hints = typing.get_type_hints(options)
+    for f in fields(options):
+        made = Option(prefix + f.name, hints[f.name], f.default, f.metadata.get("meaning", ""), (reader,))
+        known = OPTIONS.get(made.name)
+        if known is None:
+            OPTIONS[made.name] = made
+        elif (known.type, known.default) != (made.type, made.default):
+            raise ValueError(f"codegen option '{made.name}' declared twice with different types or defaults")
+        elif reader not in known.readers:
+            OPTIONS[made.name] = replace(known, readers=known.readers + (reader,))
+
+
+@dataclass(frozen=True)
+class NumericOptions:
+    """The number format of a build (read by :class:`CodegenConfig`)."""
+
+    precision: str = option("double", "casadi_real of the build: 'double' or 'float'")
+    scaling: bool = option(None, "filters work on the scaled state x~ = (x - offset) / scale (codegen/scaling.py); "
+                                 "default: on for float, off for double")
+
+
+declare_options(NumericOptions, "CodegenConfig")
+
+
+def codegen_options() -> list[Option]:
+    """Every codegen option: CodegenConfig's fields, then the declared options by name (those of
+    every family once ``symkf.codegen`` is imported, which imports them all)."""
+    hints = typing.get_type_hints(CodegenConfig)
+    own = [Option(f.name, hints[f.name], f.default, f.metadata.get("meaning", ""), ("codegen",))
+           for f in fields(CodegenConfig) if f.name != "extra"]
+    return own + [OPTIONS[name] for name in sorted(OPTIONS)]
 
 
 @dataclass(frozen=True)
@@ -135,8 +213,8 @@ class CodegenConfig:
         extra: per-family settings (e.g. a quaternion filter's iteration count).
     """
 
-    rk4_substeps: int = 1
-    optimization: str = "-O3 -fno-math-errno"
+    rk4_substeps: int = option(1, "RK4 sub-steps per filter step in the discretised dynamics")
+    optimization: str = option("-O3 -fno-math-errno", "the C compiler's -O level and flags for the library")
     extra: tuple[tuple[str, object], ...] = ()
 
     def __post_init__(self) -> None:
@@ -147,11 +225,15 @@ class CodegenConfig:
 
     def with_overrides(self, **changes) -> "CodegenConfig":
         """A new config with the given fields changed; this one is left as it is. An option that
-        no part of codegen reads is a :class:`ConfigError` (a misspelt option must not build)."""
-        unknown = sorted(k for k in changes if k not in self.__dataclass_fields__ and k not in OPTION_KEYS)
+        no part of codegen declares (:data:`OPTIONS`), or a value not of its declared type, is a
+        :class:`ConfigError` (a misspelt option must not build)."""
+        unknown = sorted(k for k in changes if k not in self.__dataclass_fields__ and k not in OPTIONS)
         if unknown:
-            known = sorted(set(self.__dataclass_fields__) - {"extra"} | OPTION_KEYS)
+            known = sorted(set(self.__dataclass_fields__) - {"extra"} | set(OPTIONS))
             raise ConfigError(f"unknown codegen option(s) {unknown}; known: {', '.join(known)}")
+        for key, value in changes.items():
+            if key in OPTIONS and not OPTIONS[key].accepts(value):
+                raise ConfigError(f"{key}: expected a value of type {OPTIONS[key].type_name}, got {value!r}")
         known = {k: v for k, v in changes.items() if k in self.__dataclass_fields__}
         extra = dict(self.extra)
         extra.update({k: v for k, v in changes.items() if k not in self.__dataclass_fields__})

@@ -15,7 +15,7 @@ maps reference-frame vectors into the body frame) and the gyro bias b (rad/s).
   (rad, white, 1σ per body axis from Table 1). q_s is a quaternion measurement and η_s its own
   noise (``measurement_noise``): h carries the noise non-additively, R is the covariance of η_s.
 
-The filters are the generated manifold filters (``codegen/families/manifold.py``: "mekf";
+The filters are the generated manifold filters (``codegen/families/mekf.py``: "mekf";
 ``codegen/families/quaternion_filters.py``: "sukf", the paper's separated-noise UKF, and "aukf",
 its augmented form) with paper 000's chart and noise handling chosen in ``codegen_defaults``.
 

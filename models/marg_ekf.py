@@ -1,5 +1,5 @@
 """A MARG orientation filter written as one model: attitude quaternion + gyro bias, for the
-generated multiplicative EKF (``codegen/families/manifold.py``).
+generated multiplicative EKF (``codegen/families/mekf.py``).
 
 - States: ``q``, the orientation of the sensor in an **ENU** earth frame (Hamilton, scalar-last,
   ``v_E = R(q) v_S``), and the gyro bias ``b`` (rad/s, random walk).

@@ -412,7 +412,7 @@ class Filter:
         """y, S of the last step with measurement ``name`` if a trusted step left them: the checked
         step kernel on the inputs it kept (the same expressions: a checked step's y, S bit for bit;
         its x, P land in the replay's buffers). NaN if that kernel refuses what the trusted one
-        took: a P off the PSD test after a successful step (none seen; codegen/families/manifold.py
+        took: a P off the PSD test after a successful step (none seen; codegen/families/mekf.py
         ``mekf_run_kernels``)."""
         replay = self._replays.get(name)
         if replay is None or not replay.stale[0]:

@@ -15,7 +15,7 @@ Measurement update (discrete, at each sensor's own rate): with U = H P (H sparse
     xhat+ = xhat + K (z - h(xhat)).
 
 P+ = P - K U costs O(n^2 m) instead of the O(n^3) of (I - K H) P, and is symmetrised. Masks as
-in :mod:`symkf.codegen.kernels`: a masked component contributes exactly nothing, all masked
+in :mod:`symkf.codegen.families.framework`: a masked component contributes exactly nothing, all masked
 leaves x and P bit-for-bit unchanged (K = 0). A non-PD S returns NOT_PD (and writes nothing).
 
 C size and compile time: the augmented derivative (x', P') is one never-inlined SX function
@@ -33,13 +33,13 @@ import casadi as ca
 
 from symkf.models.base import Model
 from .. import linalg
-from ..discretize import FUNCTION_OPTIONS, continuous_dynamics
-from ..kernels import (ModelFunctions, Symbols, all_finite, compose_step, filter_spec, gated, innovation,
-                       masked_finite, masked_noise, register_family, update_status)
+from ..discretize import CALLED_OPTIONS, continuous_dynamics
+from ..model_functions import ModelFunctions, Symbols
 from ..spec import Family, Kernel
+from .framework import (all_finite, compose_step, filter_spec, gated, innovation, masked_finite, masked_noise,
+                        register_family, update_status)
 
 FAMILY = "cd_ekf"
-_CALLED = dict(FUNCTION_OPTIONS, never_inline=True)
 
 
 def upper_triangle(P: ca.SX) -> ca.SX:
@@ -71,7 +71,7 @@ def augmented_derivative(model: Model) -> ca.Function:
     AP = A @ from_upper_triangle(ptri, n)
     pdot = upper_triangle(AP + AP.T + Q)
     return ca.Function(f"{model.name}_cd_derivative", [t, x, ptri, u, p, Q], [xdot, pdot],
-                       ["t", "x", "Ptri", "u", "p", "Q"], ["xdot", "Ptri_dot"], _CALLED)
+                       ["t", "x", "Ptri", "u", "p", "Q"], ["xdot", "Ptri_dot"], CALLED_OPTIONS)
 
 
 def rk4_step(model: Model, derivative: ca.Function) -> ca.Function:
@@ -140,13 +140,13 @@ def measurement_terms(model: Model, name: str) -> ca.Function:
     finite = all_finite([t, x, u, p, q, mask, R, gate]) * masked_finite(z, mask)
     return ca.Function(f"{model.name}_cd_terms_{name}", [t, x, u, p, q, z, mask, R, gate],
                        [ca.diag(mask) @ H, masked_noise(R, mask), y, finite],
-                       ["t", "x", "u", "p", "q", "z", "mask", "R", "gate"], ["H", "R", "y", "finite"], _CALLED)
+                       ["t", "x", "u", "p", "q", "z", "mask", "R", "gate"], ["H", "R", "y", "finite"], CALLED_OPTIONS)
 
 
 def covariance_check(n: int, prefix: str) -> ca.Function:
     """P -> 0/1 flag that P is positive semi-definite (the EKF refuses anything else)."""
     P = ca.SX.sym("P", n, n)
-    return ca.Function(f"{prefix}_cd_psd_{n}", [P], [linalg.psd_flag(P)], ["P"], ["ok"], _CALLED)
+    return ca.Function(f"{prefix}_cd_psd_{n}", [P], [linalg.psd_flag(P)], ["P"], ["ok"], CALLED_OPTIONS)
 
 
 def kalman_gain(n: int, m: int, prefix: str) -> ca.Function:
@@ -156,7 +156,7 @@ def kalman_gain(n: int, m: int, prefix: str) -> ca.Function:
     L, ok = linalg.cholesky(linalg.symmetrize(S))
     return ca.Function(f"{prefix}_cd_gain_{n}x{m}", [S, U, y],
                        [linalg.cholesky_solve(L, U).T, ok, ca.sumsqr(linalg.solve_lower(L, y))],
-                       ["S", "U", "y"], ["K", "ok", "nis"], _CALLED)
+                       ["S", "U", "y"], ["K", "ok", "nis"], CALLED_OPTIONS)
 
 
 def update_function(model: Model, name: str, gain: ca.Function, psd: ca.Function) -> ca.Function:

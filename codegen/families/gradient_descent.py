@@ -26,7 +26,8 @@ from functools import lru_cache
 import casadi as ca
 
 from symkf.models import marg as paper
-from ..kernels import ModelFunctions, Symbols, all_finite, make_kernel, register_family
+from ..model_functions import ModelFunctions, Symbols
+from .framework import all_finite, make_kernel, register_family
 from ..linalg import select
 from ..spec import STATUS_DOMAIN, STATUS_NONFINITE, Arg, Family, FilterSpec, Kernel
 

@@ -40,10 +40,11 @@ import casadi as ca
 
 from symkf.models.base import Model
 from .. import linalg
-from ..kernels import (ModelFunctions, Symbols, all_finite, compose_step, filter_spec, innovation,
-                       make_kernel, masked_noise, register_family, update_outputs)
 from ..discretize import measurement_function
+from ..model_functions import ModelFunctions, Symbols
 from ..spec import STATUS_DOMAIN, STATUS_NOT_PD, Arg, Family
+from .framework import (all_finite, compose_step, filter_spec, innovation, make_kernel, masked_noise, register_family,
+                        update_outputs)
 
 
 # ---------------------------------------------------------------------- process noise

@@ -1,13 +1,13 @@
-"""Noise-sampling manifold UKFs (paper 000's filters) on the manifold family's primitives, and the
-eigenvector quaternion mean every manifold UKF uses.
+"""Noise-sampling manifold UKFs (paper 000's filters) on the manifold filters' primitives.
 
 Families ``"sukf"`` and ``"aukf"`` (filters of the same names), for any model with
 ``quaternion_state`` whose measurements declare their own noise (``Model.measurement_noise``).
-They share everything with ``codegen/families/manifold.py``: the chart (retraction x ⊞ δ, local
-coordinates x ⊟ x̂, both per the model's ``manifold_*`` options), the step f_d(t, dt, x, u, p, w)
-with the process noises w as arguments, the measurement h(t, x, u, p, q, v) with its noise v, the
-quaternion mean below, masks, gates, status codes and the keep-on-failure outputs. What differs
-from the generic manifold UKF (``mukf``, additive noise) is where the noise enters: it is sampled.
+They share everything with the other manifold filters: the chart of ``chart.py`` (retraction
+x ⊞ δ, local coordinates x ⊟ x̂, both per the model's ``manifold_*`` options, and the quaternion
+mean (36)-(38)), and from ``manifold.py`` the step f_d(t, dt, x, u, p, w) with the process noises w
+as arguments, the measurement h(t, x, u, p, q, v) with its noise v, masks, gates, status codes and
+the update's outputs. What differs from the generic manifold UKF (``mukf``, additive noise) is
+where the noise enters: it is sampled.
 
 Leeghim, Choi, Bang, Park, "Spacecraft Attitude Estimation by Unscented Filtering" (2008):
 
@@ -28,14 +28,6 @@ Leeghim, Choi, Bang, Park, "Spacecraft Attitude Estimation by Unscented Filterin
 
 κ is not given by the paper: the default κ = 1 keeps every weight positive (κ = 3 - n would make
 W_0 < 0).
-
-Quaternion mean without LAPACK (Markley et al., "Averaging quaternions", JGCD 30(4) 2007; paper
-000 eqs (36)-(38)): N = Σ W_i Ψ(q_i)Ψ(q_i)ᵀ = (Σ W_i) I - M for unit q_i with M = Σ W_i q_i q_iᵀ,
-so the wanted eigenvector is M's for its largest eigenvalue. M is shifted by the total negative
-weight (to make it positive semidefinite) and squared ``MEAN_SQUARINGS`` times with trace
-normalisation (A ← A²/tr A², i.e. M^(2^k): the other eigen-directions shrink as
-(λ_j/λ_1)^(2^k)); the column with the largest diagonal is then polished by ``MEAN_POLISH`` power
-steps and its sign aligned with a reference quaternion. Fixed work, branch-free, no LAPACK.
 """
 from __future__ import annotations
 
@@ -43,49 +35,26 @@ import casadi as ca
 
 from symkf.models.base import Model
 from .. import linalg
-from ..discretize import FUNCTION_OPTIONS
-from ..kernels import ModelFunctions, Symbols, compose_step, filter_spec, make_kernel, register_family
+from ..discretize import CALLED_OPTIONS
+from ..model_functions import ModelFunctions, Symbols
 from ..spec import Arg, Family, Kernel
+from .chart import ManifoldOptions, quaternion_mean
+from .framework import compose_step, filter_spec, make_kernel, register_family
+from .kalman import UPDATE_INPUTS
+from .manifold import (ManifoldFunctions, ManifoldSymbols, measurement_input, predict_kernel, predict_status,
+                       require_quaternion, update_outputs)
 
 #: UKF scaling κ used unless given: keeps every weight positive (paper 000 leaves κ open).
 DEFAULT_KAPPA = 1.0
-#: Squarings of the shifted M in the quaternion mean: off-dominant directions shrink as r^(2^k).
-MEAN_SQUARINGS = 32
-#: Power-iteration steps that polish the eigenvector after the squarings.
-MEAN_POLISH = 2
-
-_CALLED = dict(FUNCTION_OPTIONS, never_inline=True)
 
 
 # ---------------------------------------------------------------------- quaternion mean
-def quaternion_mean(quaternions: ca.SX, weights: ca.SX, q_ref: ca.SX,
-                    squarings: int = MEAN_SQUARINGS, polish: int = MEAN_POLISH) -> ca.SX:
-    """Eqs (36)-(38): the unit eigenvector of N for its smallest eigenvalue, sign aligned with q_ref."""
-    n = quaternions.shape[1]
-    M = sum((weights[i] * quaternions[:, i] @ quaternions[:, i].T for i in range(n)), ca.SX.zeros(4, 4))
-    shift = sum((ca.fmax(-weights[i], 0) for i in range(n)), ca.SX(0))
-    shifted = M + shift * ca.SX.eye(4)
-    A = shifted / ca.fmax(ca.trace(shifted), linalg.TINY)
-    for _ in range(squarings):
-        A = A @ A
-        A = A / ca.fmax(ca.trace(A), linalg.TINY)
-    column, best = A[:, 0], A[0, 0]
-    for j in range(1, 4):
-        larger = A[j, j] > best
-        column, best = ca.if_else(larger, A[:, j], column), ca.fmax(A[j, j], best)
-    v = column / ca.norm_2(column)
-    for _ in range(polish):
-        v = shifted @ v
-        v = v / ca.norm_2(v)
-    return ca.if_else(ca.dot(v, q_ref) < 0, -1, 1) * v
-
-
 def mean_kernel(symbols: Symbols, n_points: int) -> Kernel:
     """``quaternion_mean_<n>``: the eigenvector mean alone (for tests and users)."""
     quaternions, weights, q_ref = ca.SX.sym("quaternions", 4, n_points), ca.SX.sym("weights", n_points), \
         ca.SX.sym("q_ref", 4)
     mean = ca.Function(f"{symbols.model.name}_quaternion_mean_{n_points}", [quaternions, weights, q_ref],
-                       [quaternion_mean(quaternions, weights, q_ref)], _CALLED)
+                       [quaternion_mean(quaternions, weights, q_ref)], CALLED_OPTIONS)
     extra_sym = {"quaternions": quaternions, "weights": weights, "q_ref": q_ref}
     extra_arg = {"quaternions": Arg("quaternions", (4, n_points), "-", "unit quaternions, one per column"),
                  "weights": Arg("weights", (n_points, 1), "-", "weights W_i (sum 1; may include a negative W_0)"),
@@ -158,7 +127,6 @@ def sigma_update(mf, ms, name: str, msym: dict, m, x_hat, P, deviations, points,
 
 # ---------------------------------------------------------------------- separated-space UKF
 def sukf_predict_kernel(mf, ms) -> Kernel:
-    from .manifold import predict_kernel
     s = ms.base.sym
     Q_held = ms.sym["Q"] / linalg.guarded(s["dt"], s["dt"] > 0)
     offsets, weights, ok, positive = sigma_set([ms.sym["P"], Q_held], s["kappa"])
@@ -175,8 +143,6 @@ def _state_offsets_in_domain(mf, offsets) -> ca.SX:
 
 
 def sukf_update_kernel(mf, ms, name: str) -> Kernel:
-    from .manifold import measurement_input, update_outputs
-    from .kalman import UPDATE_INPUTS
     s, ne = ms.base.sym, mf.model.n_error
     msym, marg = ms.measurement(name)
     m = measurement_input(mf.model, ms, name, msym)
@@ -214,7 +180,6 @@ def _augmented_set(mf, ms, R):
 
 
 def aukf_kernels(model: Model, symbols: Symbols, fns: ModelFunctions) -> Family:
-    from .manifold import measurement_input, predict_kernel, predict_status, update_outputs
     mf, ms = _setup(model, symbols, fns, "aukf")
     if len(model.measurements) != 1:
         raise ValueError(f"filter family 'aukf' augments the state with one measurement's noise; model "
@@ -246,8 +211,7 @@ def aukf_kernels(model: Model, symbols: Symbols, fns: ModelFunctions) -> Family:
 
 
 def _setup(model: Model, symbols: Symbols, fns: ModelFunctions, family: str):
-    from .manifold import ManifoldFunctions, ManifoldSymbols, _require_quaternion
-    _require_quaternion(model, family)
+    require_quaternion(model, family)
     if not model.noises:
         raise ValueError(f"filter family '{family}' samples the process noises: model '{model.name}' declares none "
                          "(Model.noise())")
@@ -262,5 +226,5 @@ def _setup(model: Model, symbols: Symbols, fns: ModelFunctions, family: str):
     return mf, ManifoldSymbols(model, symbols)
 
 
-register_family("sukf", sukf_kernels)
-register_family("aukf", aukf_kernels)
+register_family("sukf", sukf_kernels, options=(ManifoldOptions,))
+register_family("aukf", aukf_kernels, options=(ManifoldOptions,))

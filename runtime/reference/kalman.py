@@ -10,7 +10,7 @@ import numpy as np
 from scipy.linalg import cho_factor, cho_solve, solve_triangular
 
 from symkf.codegen import make_config
-from symkf.codegen.kernels import ModelFunctions
+from symkf.codegen.model_functions import ModelFunctions
 from symkf.models import get_model
 from .common import _init_filter_state, _sym, wrap_angle
 

@@ -1,4 +1,4 @@
-"""NumPy reference of the multiplicative EKF and the manifold UKF (``codegen/families/manifold.py``),
+"""NumPy reference of the multiplicative EKF and the manifold UKF (``codegen/families/mekf.py``, ``mukf.py``),
 with the quaternion algebra it needs written out in NumPy (Hamilton product, scalar-last)."""
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from scipy.linalg import cho_factor, cho_solve
 
 from symkf.codegen import make_config
 from symkf.codegen.families import manifold as manifold_family
-from symkf.codegen.kernels import ModelFunctions
+from symkf.codegen.model_functions import ModelFunctions
 from symkf.models import get_model
 from .common import _init_filter_state, _sym, wrap_angle
 from .kalman import ReferenceFilter

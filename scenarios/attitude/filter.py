@@ -2,7 +2,7 @@
 
 :class:`AttitudeFilter` is a thin view of buffers bound once to the attitude model's generated
 manifold filters (``kind`` = "mekf": the generic multiplicative EKF, "ukf": the paper's
-separated-space UKF "sukf", "aukf": its full augmented form; codegen/families/manifold.py and
+separated-space UKF "sukf", "aukf": its full augmented form; codegen/families/mekf.py and
 quaternion_filters.py document the equations);
 :class:`~symkf.scenarios.attitude.reference.ReferenceAttitudeFilter` is the paper's algebra written in NumPy.
 

@@ -2,7 +2,7 @@
 that the generic manifold families, with the attitude model's options, are paper 000.
 
 Shuster product, δp charts, eqs (34)-(53); the quaternion mean by ``numpy.linalg.eigh``. The
-compiled filters are the generic families ("mekf" in ``codegen/families/manifold.py``,
+compiled filters are the generic families ("mekf" in ``codegen/families/mekf.py``,
 "sukf"/"aukf" in ``quaternion_filters.py``)."""
 from __future__ import annotations
 

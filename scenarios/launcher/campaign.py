@@ -42,7 +42,7 @@ from functools import lru_cache
 import numpy as np
 
 from symkf.codegen import make_config
-from symkf.codegen.kernels import ModelFunctions
+from symkf.codegen.model_functions import ModelFunctions
 from symkf.models import get_model
 from symkf.models import launcher as L
 from symkf.scenarios.campaign import ModelKey, Task, chunks, compiled_model, model_key, run_campaign, run_rng

@@ -14,7 +14,7 @@ import pytest
 
 from symkf.codegen import make_config
 from symkf.codegen.discretize import EventBranches, event_in_step
-from symkf.codegen.kernels import ModelFunctions
+from symkf.codegen.model_functions import ModelFunctions
 from symkf.models import get_model
 from symkf.scenarios.launcher.campaign import TUNING
 from symkf.scenarios.launcher.truth import propagate
@@ -25,7 +25,8 @@ RUNS = ("ekf_radar", "ukf_radar", "ekf_radar_wgs84", "ukf_radar_wgs84")
 
 @pytest.fixture(scope="module")
 def launcher_functions():
-    from symkf.codegen.kernels import FAMILIES, Symbols
+    from symkf.codegen.families.framework import FAMILIES
+    from symkf.codegen.model_functions import Symbols
     model = get_model("launcher")
     fns = ModelFunctions(model, make_config("launcher"))
     FAMILIES["ukf"](model, Symbols(model), fns)         # declares the UKF's sigma-point f_d

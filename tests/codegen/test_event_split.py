@@ -6,7 +6,7 @@ import pytest
 
 from symkf.codegen import make_config
 from symkf.codegen.discretize import discrete_dynamics
-from symkf.codegen.kernels import ModelFunctions
+from symkf.codegen.model_functions import ModelFunctions
 from symkf.models import get_model
 from symkf.models.base import Model
 from symkf.models.errors import ModelError
@@ -108,7 +108,7 @@ def test_euler_with_linear_covariance_is_x_plus_f_dt_and_identity_plus_a_dt(func
 @pytest.mark.parametrize("bad", [{"ekf_integrator": "rk45"}, {"ukf_covariance": "exact"}, {"ekf_substeps": 0},
                                  {"ekf_substeps": 1.5}])
 def test_bad_discretisation_is_refused(bad):
-    from symkf.codegen.kernels import Discretisation
+    from symkf.codegen.model_functions import Discretisation
     family = next(iter(bad)).split("_")[0]
     with pytest.raises(ValueError, match=family):
         Discretisation.for_family(make_config("launcher", **bad), family)

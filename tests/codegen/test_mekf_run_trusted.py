@@ -1,6 +1,6 @@
 """The MEKF's compiled run iterates ``mekf_run_<m>`` until a step succeeds, then its trusted
 partner ``mekf_run_<m>_trusted`` (no test of |q| = 1, P PSD or R diagonal on the loop's own
-state: ``manifold.mekf_run_kernels``) or, for the mask patterns of ``manifold_run_variants``
+state: ``mekf.mekf_run_kernels``) or, for the mask patterns of ``manifold_run_variants``
 with the gate off, a variant of it with those mask entries constant 0 (as the step function
 does with the step's variants). Codes and histories must be exactly those of the checked kernel
 called one step at a time, refused steps and refused runs included."""
@@ -156,7 +156,7 @@ def test_a_masked_component_with_a_singular_jacobian_is_ignored_on_both_backends
     """A field with no horizontal part (here: none at all) makes the heading's H row infinite.
     Masked, that row must not enter the update, on the C step (which calls a variant with the
     heading folded away) as on the CasADi VM (the general kernel): both accept the step with the
-    same x, P. Used, both refuse it (SYMKF_ERR_NOT_PD). Before manifold.masked_rows the VM
+    same x, P. Used, both refuse it (SYMKF_ERR_NOT_PD). Before mekf.masked_rows the VM
     refused the masked case (0 * Inf in H)."""
     from symkf.models import marg_ekf
     from symkf.runtime import SymkfError, load

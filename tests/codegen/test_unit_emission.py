@@ -15,7 +15,7 @@ from symkf.codegen import generate, generate_validated, make_config
 from symkf.codegen.c_backend import units
 from symkf.codegen.compiler_pool import CompilerPool
 from symkf.models import get_model
-from symkf.codegen.kernels import LONG_COMPILE
+from symkf.codegen.families.framework import LONG_COMPILE
 
 
 @pytest.fixture(scope="module")

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from symkf.codegen import make_config
-from symkf.codegen.kernels import ModelFunctions
+from symkf.codegen.model_functions import ModelFunctions
 from symkf.models import get_model
 from symkf.models import launcher as L
 from symkf.runtime.reference import ReferenceFilter
