@@ -11,13 +11,13 @@ Medians over ``--repeats``; the machine's load shows in the spread, so read rati
 from __future__ import annotations
 
 import json
-import time
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from symkf.models import get_model
 from symkf.runtime import load
+from symkf.scenarios import timing
 from symkf.scenarios.attitude.filter import AttitudeFilter, ReferenceAttitudeFilter
 
 KINDS = ("mekf", "ukf", "aukf")
@@ -52,12 +52,7 @@ def _inputs(n_steps: int, with_star: bool, seed: int = 1):
 
 
 def _median_us(function, repeats: int, steps: int) -> float:
-    samples = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        function()
-        samples.append((time.perf_counter() - start) / steps * 1e6)
-    return float(np.median(samples))
+    return timing.repeated(function, repeats, calls=steps).us
 
 
 def _kernel_us(filt: AttitudeFilter, call, repeats: int, calls: int) -> float:

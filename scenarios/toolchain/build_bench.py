@@ -17,7 +17,7 @@ hashing; generating the kernels and their C, part by part; writing the API unit,
 Makefile; waiting for the compilers and linking), and the CPU seconds of the cold build and of the
 edit (this process, and the compilers it ran: less noisy than wall time on a shared machine). The
 phases overlap: each part's units compile while the next part is generated.
-Targets (issue 9, 2 cores): no-op <= 0.3 s; edit -> filter <= 3 s (launcher), <= 4 s (geo).
+Targets (2 cores): no-op <= 0.3 s; edit -> filter <= 3 s (launcher), <= 4 s (geo).
 """
 from __future__ import annotations
 
@@ -27,12 +27,12 @@ import re
 import resource
 import statistics
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
 
 from symkf.models import MODELS_DIR
+from symkf.scenarios import timing
 
 #: The one-line edit per model (old, new) and the target for edit -> loaded filter (s).
 EDITS = {"launcher": ("SCALE_HEIGHT = 7.2e3", "SCALE_HEIGHT = 7.3e3"),
@@ -76,21 +76,17 @@ def one_run(name: str, overrides: dict) -> dict:
         os.environ["SYMKF_BUILD_DIR"] = str(Path(tmp) / "build")
         try:
             path = user_copy(name, Path(tmp))
-            start, cpu = time.perf_counter(), _cpu_seconds()
-            _loaded_filter(path, overrides)
-            cold = time.perf_counter() - start
+            cpu = _cpu_seconds()
+            _, cold, _ = timing.timed(lambda: _loaded_filter(path, overrides))
             cold_cpu = {key: value - cpu[key] for key, value in _cpu_seconds().items()}
-            start = time.perf_counter()
-            noop_model = _loaded_filter(path, overrides)
-            noop = time.perf_counter() - start
+            noop_model, noop, _ = timing.timed(lambda: _loaded_filter(path, overrides))
             assert noop_model.build.up_to_date
             text = path.read_text()
             if old not in text:
                 raise RuntimeError(f"bench build: the line to edit ({old}) is not in models/{name}.py")
             path.write_text(text.replace(old, new, 1))
-            start, cpu = time.perf_counter(), _cpu_seconds()
-            edited = _loaded_filter(path, overrides)
-            edit = time.perf_counter() - start
+            cpu = _cpu_seconds()
+            edited, edit, _ = timing.timed(lambda: _loaded_filter(path, overrides))
             edit_cpu = {key: value - cpu[key] for key, value in _cpu_seconds().items()}
             assert not edited.build.up_to_date
             sources = json.loads(edited.build.manifest.read_text())["sources"]
