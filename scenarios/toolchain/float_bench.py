@@ -1,5 +1,7 @@
-"""Single precision beside double: every figure from the float build (``precision="float"``)
-next to the same figure from the default double build, on the same draws.
+"""Single precision beside double: each figure of the float build next to the double build's, on the same draws.
+
+Every figure from the float build (``precision="float"``) beside the same figure from the default
+double build.
 
     symkf bench float [--runs 100] [--attitude-runs 2] [--attitude-duration 600] [--geo-duration 1000]
                       [--json] [--out FILE] [--skip-launcher] [--skip-attitude] [--skip-marg] [--skip-geo]
