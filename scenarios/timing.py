@@ -14,7 +14,7 @@ from __future__ import annotations
 import statistics
 import time
 from dataclasses import dataclass
-from typing import Callable, Mapping
+from typing import Callable, Mapping, Sequence
 
 
 @dataclass(frozen=True)
@@ -71,9 +71,12 @@ def repeated(function: Callable[[], object], rounds: int, calls: int = 1) -> Sam
     return interleaved({"f": lambda i: function()}, rounds, calls)["f"]
 
 
-def round_ratios(numerator: Samples, denominator: Samples) -> list[float]:
-    """numerator / denominator of each round (wall time): timings taken under the same load."""
-    return [a / b for a, b in zip(numerator.wall, denominator.wall)]
+def round_ratios(numerator: Samples | Sequence[float], denominator: Samples | Sequence[float]) -> list[float]:
+    """numerator / denominator of each round (wall time, or figures of one round each): timings
+    taken under the same load."""
+    def values(s):
+        return s.wall if isinstance(s, Samples) else s
+    return [a / b for a, b in zip(values(numerator), values(denominator))]
 
 
 def medians(samples: Mapping[str, Samples]) -> dict[str, float]:

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from symkf.scenarios import timing
+from symkf.scenarios.report import emit
 
 MODEL = "geo_satellite"
 TARGETS = {"full_build_s": 10.0, "noop_build_s": 1.0, "step_us": 10.0}
@@ -102,9 +103,11 @@ def run(args) -> int:
         "full_build": results["build"]["full_build_s"] <= TARGETS["full_build_s"],
         "noop_build": results["build"]["noop_build_s"] <= TARGETS["noop_build_s"],
         "step": predict <= TARGETS["step_us"]}
-    if args.json:
-        print(json.dumps(results, indent=1))
-        return 0
+    emit(results, None, args.json, _print)
+    return 0
+
+
+def _print(results: dict) -> None:
     b = results["build"]
     print(f"{MODEL}: full build {b['full_build_s']:.2f} s, no-op {b['noop_build_s']:.2f} s, "
           f"after a one-line edit {b['edit_build_s']:.2f} s ({b['generated_c_lines']} lines of C)")
@@ -114,4 +117,3 @@ def run(args) -> int:
     for level, seconds in results.get("compile_seconds_by_level", {}).items():
         print(f"compile {level}: {seconds:.2f} s")
     print("meets targets:", results["meets_targets"])
-    return 0

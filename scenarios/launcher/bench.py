@@ -36,7 +36,6 @@ update, the fused step, a step inside the run loop), with where a step's instruc
 from __future__ import annotations
 
 import ctypes
-import json
 import shutil
 import statistics
 import subprocess
@@ -52,6 +51,7 @@ from symkf.runtime import load
 from symkf.runtime.reference import ReferenceFilter
 from symkf.scenarios import callgrind, timing
 from symkf.scenarios.campaign import compiled_model
+from symkf.scenarios.report import emit
 from .campaign import TUNING, Campaign, initial_estimate, Case
 from .truth import propagate, radar_track
 
@@ -77,10 +77,7 @@ def add_arguments(parser) -> None:
 
 def run(args) -> int:
     report = measure(args.steps, args.reference_steps, args.campaign, args.instructions, args.scheduler)
-    if args.json:
-        print(json.dumps(report, indent=1))
-    else:
-        print(human_table(report))
+    emit(report, None, args.json, lambda r: print(human_table(r)))
     return 0
 
 
@@ -134,7 +131,8 @@ def time_steps_and_c_loop(model, work: Workload) -> tuple[dict[str, dict[str, fl
             rounds.append(figures)
     medians = {family: {path: statistics.median(r[family][path] for r in rounds) for path in rounds[0][family]}
                for family in FILTERS}
-    spread = {f"{family} compiled_step/{loop_path}": [r[family]["compiled_step"] / r[family][loop_path] for r in rounds]
+    spread = {f"{family} compiled_step/{loop_path}": timing.round_ratios([r[family]["compiled_step"] for r in rounds],
+                                                                         [r[family][loop_path] for r in rounds])
               for family in FILTERS for loop_path in ("c_loop", "c_loop_process")}
     return medians, spread
 

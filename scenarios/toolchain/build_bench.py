@@ -33,6 +33,7 @@ import numpy as np
 
 from symkf.models import MODELS_DIR
 from symkf.scenarios import timing
+from symkf.scenarios.report import emit
 
 #: The one-line edit per model (old, new) and the target for edit -> loaded filter (s).
 EDITS = {"launcher": ("SCALE_HEIGHT = 7.2e3", "SCALE_HEIGHT = 7.3e3"),
@@ -144,10 +145,12 @@ def run(args) -> int:
     results = {name: measure(name, args.repeats, overrides) for name in names}
     results["_settings"] = {"repeats": args.repeats, "overrides": overrides, "cores": os.cpu_count(),
                             "load_average": os.getloadavg()}
-    if args.json:
-        print(json.dumps(results, indent=1))
-        return 0
-    print(f"model author's loop, medians of {args.repeats} (s); load average at the end "
+    emit(results, None, args.json, lambda r: _print(r, names, args.repeats, overrides))
+    return 0
+
+
+def _print(results: dict, names: list[str], repeats: int, overrides: dict) -> None:
+    print(f"model author's loop, medians of {repeats} (s); load average at the end "
           f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} cores" + (f"; options {overrides}" if overrides else ""))
     print(f"{'model':15s} {'cold build':>11s} {'no-op load':>11s} {'edit->filter':>13s} {'target':>7s}   "
           "edit: model+hash / generate+C / write / compile (s)   edit CPU s: python + compilers   units compiled")
@@ -157,4 +160,3 @@ def run(args) -> int:
               f"{TARGETS['edit_s'][name]:7.1f}   {p.get('model', 0):.2f} / {p.get('generate', 0):.2f} / "
               f"{p.get('write', 0):.2f} / {p.get('compile', 0):.2f}   {cpu['python']:.2f} + {cpu['compilers']:.2f}   "
               f"{r['edit_units_compiled']} of {r['units']} ({r['generated_c_lines']} lines of C)")
-    return 0
