@@ -2,9 +2,10 @@
 shared machine), for the benches' ``--instructions`` options (``symkf bench launcher``,
 ``symkf bench marg``): a small C driver compiled against a bundle's library with the bundle's
 own flags, run under ``valgrind --tool=callgrind``, and per-function counts from
-``callgrind_annotate``."""
+``callgrind_annotate``. The drivers are ``.c`` files beside their bench, shipped as package data."""
 from __future__ import annotations
 
+import importlib.resources
 import json
 import re
 import subprocess
@@ -13,6 +14,11 @@ from pathlib import Path
 from symkf.codegen.compilation import compiler
 
 _ANNOTATED_LINE = re.compile(r"^\s*([\d,]+) \([^)]*\)\s+\S*?:(\w+)", re.M)
+
+
+def driver_source(package: str, name: str) -> str:
+    """The text of the C driver ``name`` shipped in ``package`` (a ``.c`` file beside its bench)."""
+    return importlib.resources.files(package).joinpath(name).read_text()
 
 
 def compile_driver(directory: Path, source: str, exe: Path, defines: tuple[str, ...] = ()) -> Path:

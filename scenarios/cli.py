@@ -4,20 +4,21 @@
                                         generate + compile a model (cached by a hash of what is
                                         generated); <model>: launcher, attitude, geo_satellite,
                                         marg, path/to/tracker.py or mypkg.tracker
-    symkf compare <name> [options]      a paper's experiment (scenarios/<name>/compare.py)
-    symkf bench <name> [--json]         timing table (scenarios/<name>/bench.py)
+    symkf compare <name> [options]      run a paper's experiment (symkf compare --help lists them)
+    symkf bench <name> [options]        a timing table (symkf bench --help lists them)
     symkf design-guidance               re-solve the launcher guidance (IPOPT)
 
-``compare`` and ``bench`` find their scenario by module name, so a new experiment is a new folder
-``scenarios/<name>/`` whose ``compare.py`` / ``bench.py`` define ``add_arguments(parser)`` and
-``run(args) -> int``.
 """
 from __future__ import annotations
 
 import argparse
+import ast
 import importlib
+import importlib.util
 import json
+import pkgutil
 import sys
+import textwrap
 from pathlib import Path
 
 from symkf.codegen import BuildError, build_model, export_bundle
@@ -25,15 +26,44 @@ from symkf.codegen.spec import ConfigError
 from symkf.models import ModelError
 
 
-def _scenario_module(kind: str, name: str):
-    if not name.isidentifier():
-        return None
-    try:
-        return importlib.import_module(f"symkf.scenarios.{name}.{kind}")
-    except ModuleNotFoundError as exc:
-        if exc.name in (f"symkf.scenarios.{name}", f"symkf.scenarios.{name}.{kind}"):
-            return None
-        raise
+#: What a user calls the modules of each command.
+WHAT = {"compare": "experiment", "bench": "bench"}
+
+
+def entries(kind: str) -> dict[str, str]:
+    """{name: module} of every ``kind`` ("compare" or "bench") in the installed ``symkf.scenarios``:
+    a module ``compare`` / ``bench`` of a sub-package (named after the sub-package), or a module
+    ``<name>_compare`` / ``<name>_bench`` (named ``<name>``). Each defines ``add_arguments(parser)``
+    and ``run(args) -> int``; its docstring's first paragraph is its description."""
+    scenarios = importlib.import_module("symkf.scenarios")
+    found = {}
+    for info in pkgutil.walk_packages(scenarios.__path__, "symkf.scenarios."):
+        parent, _, leaf = info.name.rpartition(".")
+        if info.ispkg:
+            continue
+        if leaf == kind and parent != "symkf.scenarios":
+            found[parent.rpartition(".")[2]] = info.name
+        elif leaf.endswith(f"_{kind}"):
+            found[leaf[:-len(kind) - 1]] = info.name
+    return dict(sorted(found.items()))
+
+
+def description(module: str) -> str:
+    """The first paragraph of a module's docstring, on one line (read from its source, not imported)."""
+    origin = importlib.util.find_spec(module).origin
+    doc = ast.get_docstring(ast.parse(Path(origin).read_text(encoding="utf-8"))) or ""
+    return " ".join(doc.split("\n\n")[0].split())
+
+
+def _listing(kind: str) -> str:
+    """The ``symkf <kind> --help`` text: usage and every name with its description."""
+    found = entries(kind)
+    width = max(map(len, found), default=0) + 2
+    lines = [f"usage: symkf {kind} <name> [options]   (symkf {kind} <name> --help: its options)", "", f"{WHAT[kind]}{'es' if kind == 'bench' else 's'}:"]
+    for name, module in found.items():
+        lines += textwrap.wrap(description(module), 100, initial_indent=f"  {name:<{width}}",
+                               subsequent_indent=" " * (width + 2))
+    return "\n".join(lines)
 
 
 def _option(text: str) -> tuple[str, object]:
@@ -60,14 +90,18 @@ def _cmd_build(args) -> int:
 
 
 def _dispatch(kind: str, argv: list[str]) -> int:
+    if argv and argv[0] in ("-h", "--help"):
+        print(_listing(kind))
+        return 0
     if not argv or argv[0].startswith("-"):
-        print(f"usage: symkf {kind} <name> [options]", file=sys.stderr)
+        print(_listing(kind), file=sys.stderr)
         return 2
     name, rest = argv[0], argv[1:]
-    module = _scenario_module(kind, name)
-    if module is None:
-        print(f"symkf {kind}: no scenario '{name}' (expected scenarios/{name}/{kind}.py)", file=sys.stderr)
+    found = entries(kind)
+    if name not in found:
+        print(f"symkf {kind}: no {WHAT[kind]} named '{name}'; choose from: {', '.join(found)}", file=sys.stderr)
         return 2
+    module = importlib.import_module(found[name])
     parser = argparse.ArgumentParser(prog=f"symkf {kind} {name}", description=module.__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     module.add_arguments(parser)
@@ -92,8 +126,8 @@ def main(argv: list[str] | None = None) -> int:
     build.add_argument("--set", type=_option, action="append", metavar="KEY=VALUE",
                        help="a codegen option, e.g. rk4_substeps=2 (each configuration has its own folder)")
     build.set_defaults(handler=_cmd_build)
-    sub.add_parser("compare", help="run a paper's experiment: symkf compare <name> --help")
-    sub.add_parser("bench", help="timing table: symkf bench <name> --help")
+    sub.add_parser("compare", help="run a paper's experiment: symkf compare --help lists them")
+    sub.add_parser("bench", help="a timing table: symkf bench --help lists them")
     guidance = sub.add_parser("design-guidance", help="re-solve the launcher guidance with IPOPT")
     guidance.set_defaults(handler=lambda a: importlib.import_module("symkf.scenarios.launcher.guidance").main())
     args = parser.parse_args(argv)

@@ -10,14 +10,13 @@ Medians over ``--repeats``; the machine's load shows in the spread, so read rati
 """
 from __future__ import annotations
 
-import json
-import time
-
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from symkf.models import get_model
 from symkf.runtime import load
+from symkf.scenarios import timing
+from symkf.scenarios.report import emit
 from symkf.scenarios.attitude.filter import AttitudeFilter, ReferenceAttitudeFilter
 
 KINDS = ("mekf", "ukf", "aukf")
@@ -52,12 +51,7 @@ def _inputs(n_steps: int, with_star: bool, seed: int = 1):
 
 
 def _median_us(function, repeats: int, steps: int) -> float:
-    samples = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        function()
-        samples.append((time.perf_counter() - start) / steps * 1e6)
-    return float(np.median(samples))
+    return timing.repeated(function, repeats, calls=steps).us
 
 
 def _kernel_us(filt: AttitudeFilter, call, repeats: int, calls: int) -> float:
@@ -125,9 +119,11 @@ def add_arguments(parser) -> None:
 
 def run(args) -> int:
     results = bench(args.steps, args.repeats, args.reference_steps)
-    if args.json:
-        print(json.dumps(results, indent=1))
-        return 0
+    emit(results, None, args.json, _print)
+    return 0
+
+
+def _print(results: dict) -> None:
     print("paper 000 attitude filters, µs per step (median); kernel = one bound C call, run = C time loop")
     print(f"{'filter':<6} {'sigma pts prop/upd':>18} {'predict':>9} {'step+upd':>9} {'run/step':>9} "
           f"{'py step':>9} {'py step+upd':>11} {'NumPy':>9} {'NumPy+upd':>10}")
@@ -139,4 +135,3 @@ def run(args) -> int:
               f"{r['numpy_reference_propagate_us']:>9.0f} {r['numpy_reference_propagate_update_us']:>10.0f}")
     for name, value in results["ratios"].items():
         print(f"{name}: {value:.2f}")
-    return 0

@@ -6,28 +6,27 @@ Measures, each as the median of ``--repeats``:
 
 - full build, no-op load and one-line edit (Table 2's I_xy 53 -> 54) -> loaded filter, in this
   process from an empty build folder, as ``symkf bench build`` measures them
-  (scenarios/build/bench.py; the edit is made in a user's copy of the model, never in this checkout);
+  (scenarios/toolchain/build_bench.py; the edit is made in a user's copy of the model, never in this checkout);
 - per-call cost of the compiled kernels: ``cd_ekf_predict`` (1/8 s, RK4 of x and P) and each
   ``cd_ekf_update_<sensor>``, both as a bare bound call (ctypes) and through the Python filter
   object, and the NumPy reference for comparison.
 
-Targets of the issue (2-core machine): full build <= 10 s, no-op <= 1 s, a step <= 10 us.
+Targets (2-core machine): full build <= 10 s, no-op <= 1 s, a step <= 10 us.
 ``--opt-levels`` also compiles the generated C at -O1/-O2/-O3 and reports compile times.
 """
 from __future__ import annotations
 
 import json
-import statistics
 import subprocess
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
 
+from symkf.scenarios import timing
+from symkf.scenarios.report import emit
 
 MODEL = "geo_satellite"
-EDIT = ('"Ixy": 53.0,', '"Ixy": 54.0,')      # one line of Table 2 in models/geo_satellite.py
 TARGETS = {"full_build_s": 10.0, "noop_build_s": 1.0, "step_us": 10.0}
 
 
@@ -41,7 +40,7 @@ def add_arguments(parser) -> None:
 def build_loop(repeats: int) -> dict:
     """Cold build, no-op load and one-line edit -> loaded filter (``symkf bench build``'s
     measurement, in this process, from an empty build folder each repeat)."""
-    from symkf.scenarios.build.bench import measure
+    from symkf.scenarios.toolchain.build_bench import measure
     r = measure(MODEL, repeats)
     return {"full_build_s": r["cold_s"], "noop_build_s": r["noop_s"], "edit_build_s": r["edit_s"],
             "edit_phases_s": r["edit_phases_s"], "generated_c_lines": r["generated_c_lines"],
@@ -59,21 +58,17 @@ def compile_levels(levels=("-O1", "-O2", "-O3")) -> dict:
         for level in levels:
             cmd = ["cc", *STRICT_FLAGS.split(), level, "-fno-math-errno", "-fPIC", "-shared",
                    "-o", str(Path(tmp) / "lib.so"), *sources, "-lm"]
-            start = time.perf_counter()
-            subprocess.run(cmd, check=True, capture_output=True)
-            times[level] = time.perf_counter() - start
+            _, times[level], _ = timing.timed(lambda: subprocess.run(cmd, check=True, capture_output=True))
     return times
 
 
 # ---------------------------------------------------------------------- step cost
 def _median_us(call, n: int = 2000, blocks: int = 7) -> float:
-    samples = []
-    for _ in range(blocks):
-        start = time.perf_counter()
+    """Median µs per call over ``blocks`` blocks of ``n`` calls."""
+    def block():
         for _ in range(n):
             call()
-        samples.append((time.perf_counter() - start) / n * 1e6)
-    return statistics.median(samples)
+    return timing.repeated(block, blocks, calls=n).us
 
 
 def step_cost() -> dict:
@@ -108,9 +103,11 @@ def run(args) -> int:
         "full_build": results["build"]["full_build_s"] <= TARGETS["full_build_s"],
         "noop_build": results["build"]["noop_build_s"] <= TARGETS["noop_build_s"],
         "step": predict <= TARGETS["step_us"]}
-    if args.json:
-        print(json.dumps(results, indent=1))
-        return 0
+    emit(results, None, args.json, _print)
+    return 0
+
+
+def _print(results: dict) -> None:
     b = results["build"]
     print(f"{MODEL}: full build {b['full_build_s']:.2f} s, no-op {b['noop_build_s']:.2f} s, "
           f"after a one-line edit {b['edit_build_s']:.2f} s ({b['generated_c_lines']} lines of C)")
@@ -120,4 +117,3 @@ def run(args) -> int:
     for level, seconds in results.get("compile_seconds_by_level", {}).items():
         print(f"compile {level}: {seconds:.2f} s")
     print("meets targets:", results["meets_targets"])
-    return 0

@@ -1,4 +1,6 @@
-"""symkf bench launcher — µs per EKF/UKF predict+update step on four paths, measured side by side.
+"""µs per EKF/UKF predict+update step of the KSLV-I launcher filters (paper 004), path by path.
+
+    symkf bench launcher [--json] [--steps N] [--reference-steps N] [--campaign] [--instructions]
 
 Paths (rows ``{"filter", "path", "us_per_step", ...}``):
 - ``numpy_reference``: runtime/reference/ (NumPy algebra, model through CasADi calls);
@@ -9,7 +11,7 @@ Paths (rows ``{"filter", "path", "us_per_step", ...}``):
 - ``compiled_step_rows``: the same calls with t, z and q indexed from the (N, 3) record inside
   the timed loop (three numpy indexings, ~0.1 µs each: the loop's cost, not the call's);
 - ``compiled_step_python``: the calls of ``compiled_step`` with the fast path off
-  (``filter.fast_path = False``): every call through the Python contract, as before issue 12;
+  (``filter.fast_path = False``): every call through the Python contract;
   the three are timed in alternate batches so that they see the same machine load;
 - ``c_loop``: the same generated ``launcher_<filter>_step_radar`` called in a C loop (no Python
   per step) over the same record, compiled against build/launcher/ with the library's flags and
@@ -17,24 +19,23 @@ Paths (rows ``{"filter", "path", "us_per_step", ...}``):
   the step paths' above, so the ratio ``compiled_step / c_loop`` compares batches taken under
   the same load; ``ROUNDS`` rounds, medians, and each round's ratio reported (the spread);
 - ``c_loop_process``: the same C loop as a program of its own (the harness ``--instructions``
-  counts), run after each round's batches: the figure before the in-process loop, kept beside it;
+  counts), run after each round's batches, its time measured by the program itself;
 - ``compiled_run``: per step inside one ``launcher_<filter>_step_radar_run`` call;
 - ``filterpy`` (when FilterPy is installed, ``pip install -e .[bench]``): FilterPy's EKF and UKF
   on the same model, calling our compiled f_d, F, h, H, with the same kappa.
-Each figure is the median over batches of consecutive steps of a real 20 Hz flight segment.
+Each figure is the median over batches of consecutive steps of a real 20 Hz flight segment
+(scenarios/timing.py).
 ``--campaign`` adds ``campaign_wall_s``: the wall time of the default ``compare`` campaign (4 cases
 x 100 runs x both filters; ``--scheduler`` runs it on Dask; tables and figures not included), its
 throughput per worker, its CPU seconds split into the compiled runs and the rest, and the library
 it ran (content hash, -O flags).
 ``--instructions`` counts, with callgrind, the instructions of one call of each part (predict,
-update, the fused step, a step inside the run loop), printed beside 32a5243's (before the
-branching event split). The table ends with issue 12's measures: the figure in the issue, on
-32a5243, the target, and this run's.
+update, the fused step, a step inside the run loop), with where a step's instructions go
+(wrapper, run loop, propagation, h and H, predict and update kernels, libm).
 """
 from __future__ import annotations
 
 import ctypes
-import json
 import shutil
 import statistics
 import subprocess
@@ -48,13 +49,18 @@ from symkf.codegen import build_model
 from symkf.models import launcher as L
 from symkf.runtime import load
 from symkf.runtime.reference import ReferenceFilter
-from symkf.scenarios import callgrind
+from symkf.scenarios import callgrind, timing
 from symkf.scenarios.campaign import compiled_model
+from symkf.scenarios.report import emit
 from .campaign import TUNING, Campaign, initial_estimate, Case
 from .truth import propagate, radar_track
 
 FILTERS = ("ekf", "ukf")
 RATE_HZ = 20
+#: The C loop of ``c_loop_process`` and of ``--instructions``, a program of its own (stdin: the record).
+C_LOOP = "c_loop_driver.c"
+#: The C loop of ``c_loop``, called in-process one batch at a time (:class:`CLoop`).
+C_LOOP_BATCH = "c_loop_batch.c"
 
 
 def add_arguments(parser) -> None:
@@ -71,10 +77,7 @@ def add_arguments(parser) -> None:
 
 def run(args) -> int:
     report = measure(args.steps, args.reference_steps, args.campaign, args.instructions, args.scheduler)
-    if args.json:
-        print(json.dumps(report, indent=1))
-    else:
-        print(human_table(report))
+    emit(report, None, args.json, lambda r: print(human_table(r)))
     return 0
 
 
@@ -93,10 +96,6 @@ class Workload:
 
     def index(self, k: int) -> int:
         return 1 + k % (len(self.base_times) - 1)
-
-
-def _median_us(batch_seconds: list[float], batch: int) -> float:
-    return 1e6 * statistics.median(batch_seconds) / batch
 
 
 def _options(family: str) -> dict:
@@ -121,7 +120,7 @@ def time_steps_and_c_loop(model, work: Workload) -> tuple[dict[str, dict[str, fl
     directory = build_model("launcher").directory
     with tempfile.TemporaryDirectory() as tmp:
         loop = CLoop(work, directory, Path(tmp))
-        exe = callgrind.compile_driver(directory, C_LOOP, Path(tmp) / "c_loop", defines=("-D_POSIX_C_SOURCE=199309L",))
+        exe = _compile_c_loop(directory, Path(tmp))
         stdin = _c_loop_input(work)
         rounds = []
         for _ in range(ROUNDS):
@@ -132,9 +131,16 @@ def time_steps_and_c_loop(model, work: Workload) -> tuple[dict[str, dict[str, fl
             rounds.append(figures)
     medians = {family: {path: statistics.median(r[family][path] for r in rounds) for path in rounds[0][family]}
                for family in FILTERS}
-    spread = {f"{family} compiled_step/{loop_path}": [r[family]["compiled_step"] / r[family][loop_path] for r in rounds]
+    spread = {f"{family} compiled_step/{loop_path}": timing.round_ratios([r[family]["compiled_step"] for r in rounds],
+                                                                         [r[family][loop_path] for r in rounds])
               for family in FILTERS for loop_path in ("c_loop", "c_loop_process")}
     return medians, spread
+
+
+def _compile_c_loop(directory: Path, tmp: Path) -> Path:
+    """:data:`C_LOOP` compiled against the bundle in ``directory`` with its flags, in ``tmp``."""
+    return callgrind.compile_driver(directory, callgrind.driver_source(__package__, C_LOOP), tmp / "c_loop",
+                                    defines=("-D_POSIX_C_SOURCE=199309L",))
 
 
 def _c_loop_process(exe: Path, stdin: str, family: str, steps: int) -> float:
@@ -159,61 +165,44 @@ def time_compiled_step(model, family: str, work: Workload, batch: int = 100, ste
         filters["c_loop"] = c_loop
     times, z, q, dt = work.base_times, work.z, work.q, 1.0 / RATE_HZ
     ready = [(float(times[i - 1]), z[i].copy(), q[i].copy()) for i in range(len(times))]
-    batches = {path: [] for path in filters}
-    for k0 in range(0, work.steps if steps is None else steps, batch):
-        for path, f in filters.items():
-            start = time.perf_counter()
-            if path == "c_loop":
-                f.batch(family, k0, batch)
-            elif path == "compiled_step_rows":
-                for k in range(k0, k0 + batch):
+
+    def batch_of(path: str, f):
+        """Batch ``b`` of ``path``: steps b * batch .. (b + 1) * batch - 1."""
+        if path == "c_loop":
+            return lambda b: f.batch(family, b * batch, batch)
+        if path == "compiled_step_rows":
+            def rows(b):
+                for k in range(b * batch, (b + 1) * batch):
                     i = work.index(k)
                     if i == 1:                  # the segment starts again (one batch's median is spared)
                         f.x, f.P = work.x0, work.P0
                     f.step(times[i - 1], dt, z[i], q=q[i])
-            else:
-                for k in range(k0, k0 + batch):
-                    i = work.index(k)
-                    if i == 1:
-                        f.x, f.P = work.x0, work.P0
-                    t, z_i, q_i = ready[i]
-                    f.step(t, dt, z_i, q=q_i)
-            batches[path].append(time.perf_counter() - start)
-    return {path: _median_us(b, batch) for path, b in batches.items()}
+            return rows
 
+        def prepared(b):
+            for k in range(b * batch, (b + 1) * batch):
+                i = work.index(k)
+                if i == 1:
+                    f.x, f.P = work.x0, work.P0
+                t, z_i, q_i = ready[i]
+                f.step(t, dt, z_i, q=q_i)
+        return prepared
 
-#: The C loop of ``c_loop``, called in-process one batch at a time (:class:`CLoop`).
-C_LOOP_BATCH = r"""
-#include <string.h>
-#include "launcher.h"
-/* Steps k0 .. k0 + count - 1 of the record (n rows: T, Z[3], QS[2]), step k with row j = 1 + k % (n - 1),
-   from x, P (restarting from x0, P0 at j = 1): launcher_<filter>_step_radar, mask all ones, no gate,
-   as the Python paths call it. Returns the OR of the status codes. */
-int c_loop_batch(int ukf, int k0, int count, int n, const double *T, const double *Z, const double *QS,
-                 const double *x0, const double *P0, double *x, double *P, const double *p, const double *Q,
-                 const double *R, double kappa, double dt) {
-  static const double mask[3] = {1, 1, 1}, gate[3] = {0, 0, 0};
-  double y[3], S[9];
-  int k, code = 0;
-  for (k = k0; k < k0 + count; ++k) {
-    int j = 1 + k % (n - 1);
-    if (j == 1) { memcpy(x, x0, 6 * sizeof *x); memcpy(P, P0, 36 * sizeof *P); }
-    code |= ukf ? launcher_ukf_step_radar(T[j - 1], dt, x, P, p, Q, &QS[2 * j], &Z[3 * j], mask, R, gate, kappa, x, P, y, S)
-                : launcher_ekf_step_radar(T[j - 1], dt, x, P, p, Q, &QS[2 * j], &Z[3 * j], mask, R, gate, x, P, y, S);
-  }
-  return code;
-}
-"""
+    batches = -(-(work.steps if steps is None else steps) // batch)
+    samples = timing.interleaved({path: batch_of(path, f) for path, f in filters.items()}, batches, calls=batch)
+    return timing.medians(samples)
+
 
 
 class CLoop:
-    """``c_loop`` in this process: :data:`C_LOOP_BATCH` compiled against the bundle in
+    """``c_loop`` in this process: the C of :data:`C_LOOP_BATCH` compiled against the bundle in
     ``directory`` with its flags (the library the filters run) and called through ctypes once per
     batch of steps (one ctypes call per 100 steps: ~0.01 µs a step), so its batches alternate with
     the Python paths' under the same load and cache. Each filter carries its own x, P."""
 
     def __init__(self, work: Workload, directory: Path, tmp: Path):
-        library = callgrind.compile_driver(directory, C_LOOP_BATCH, tmp / "c_loop_batch.so", defines=("-shared", "-fPIC"))
+        library = callgrind.compile_driver(directory, callgrind.driver_source(__package__, C_LOOP_BATCH),
+                                           tmp / "c_loop_batch.so", defines=("-shared", "-fPIC"))
         self.function = ctypes.CDLL(str(library)).c_loop_batch
         self.function.restype = ctypes.c_int
         self.function.argtypes = [ctypes.c_int] * 4 + [ctypes.c_void_p] * 10 + [ctypes.c_double] * 2
@@ -237,93 +226,24 @@ def time_compiled_run(model, family: str, work: Workload) -> float:
     f = model.filter(family, work.x0, work.P0, TUNING["Q"], **_options(family))
     n = len(work.base_times)
     repeats = max(1, int(np.ceil(work.steps / n)))
-    per_step = []
-    for _ in range(max(repeats, 3)):
+
+    def whole_record():
         f.x, f.P = work.x0, work.P0
-        start = time.perf_counter()
         f.run(work.base_times, work.z, q=work.q)
-        per_step.append((time.perf_counter() - start) / n)
-    return 1e6 * statistics.median(per_step)
+    return timing.repeated(whole_record, max(repeats, 3), calls=n).us
 
 
 def time_reference(family: str, work: Workload, steps: int, batch: int = 50) -> float:
     ref = ReferenceFilter("launcher", family, work.x0, work.P0, TUNING["Q"], kappa=TUNING["kappa"])
     times, dt = work.base_times, 1.0 / RATE_HZ
-    batches = []
-    for b in range(max(1, steps // batch)):
-        start = time.perf_counter()
+
+    def steps_of(b):
         for k in range(b * batch, (b + 1) * batch):
             i = work.index(k)
             ref.step(times[i - 1], dt, work.z[i], "radar", work.q[i])
-        batches.append(time.perf_counter() - start)
-    return _median_us(batches, batch)
+    return timing.interleaved({"reference": steps_of}, max(1, steps // batch), calls=batch)["reference"].us
 
 
-C_LOOP = r"""
-#include <stdio.h>
-#include <string.h>
-#include <time.h>
-#include "launcher.h"
-/* stdin: x0[6] P0[36] Q[36] R[9] kappa p[6] n_base, n_base lines t z[3] q[2].
-   argv[1]: ekf|ukf, argv[2]: steps, argv[3] (optional) part: step (default), predict, update, run.
-   step/predict/update: one call of launcher_<filter>_<part>[_radar] per step; run: one call of
-   launcher_<filter>_step_radar_run over all the steps. The record restarts from x0, P0 at its end. */
-static double now(void) { struct timespec ts; clock_gettime(CLOCK_MONOTONIC, &ts); return ts.tv_sec + 1e-9 * ts.tv_nsec; }
-static int rd(double *v, int n) { int i; for (i = 0; i < n; ++i) if (scanf("%lf", &v[i]) != 1) return 0; return 1; }
-static double T[20000], Z[60000], QS[40000];
-static double RT[20000], RDT[20000], RZ[60000], RQ[40000], RM[60000], XH[120000], PH[720000];
-static int SH[20000];
-static double x0[6], P0[36], x[6], P[36], Q[36], R[9], kappa, p[6], y[3], S[9], mask[3] = {1, 1, 1}, gate[3] = {0, 0, 0};
-static int call(int ukf, char part, int j, double dt) {
-  const double *q = &QS[2 * j], *z = &Z[3 * j];
-  if (part == 'p') return ukf ? launcher_ukf_predict(T[j - 1], dt, x, P, p, Q, kappa, x, P)
-                              : launcher_ekf_predict(T[j - 1], dt, x, P, p, Q, x, P);
-  if (part == 'u') return ukf ? launcher_ukf_update_radar(T[j], x, P, p, q, z, mask, R, gate, kappa, x, P, y, S)
-                              : launcher_ekf_update_radar(T[j], x, P, p, q, z, mask, R, gate, x, P, y, S);
-  return ukf ? launcher_ukf_step_radar(T[j - 1], dt, x, P, p, Q, q, z, mask, R, gate, kappa, x, P, y, S)
-             : launcher_ekf_step_radar(T[j - 1], dt, x, P, p, Q, q, z, mask, R, gate, x, P, y, S);
-}
-static int run(int ukf, int n, int steps) {
-  int k, i;
-  if (steps > n - 1 || steps > 20000) return -1;
-  for (k = 0; k < steps; ++k) {
-    RT[k] = T[k]; RDT[k] = T[k + 1] - T[k];
-    for (i = 0; i < 3; ++i) { RZ[3 * k + i] = Z[3 * (k + 1) + i]; RM[3 * k + i] = 1; }
-    for (i = 0; i < 2; ++i) RQ[2 * k + i] = QS[2 * (k + 1) + i];
-  }
-  return ukf ? launcher_ukf_step_radar_run(steps, RT, RDT, x0, P0, p, Q, RQ, RZ, RM, R, gate, kappa, XH, PH, SH)
-             : launcher_ekf_step_radar_run(steps, RT, RDT, x0, P0, p, Q, RQ, RZ, RM, R, gate, XH, PH, SH);
-}
-int main(int argc, char **argv) {
-  double dt = 0.05, batches[1000], start;
-  int n, i, k, b, nb, steps, ukf, code = 0;
-  char part = argc > 3 ? argv[3][0] : 's';
-  if (argc < 3 || !rd(x0, 6) || !rd(P0, 36) || !rd(Q, 36) || !rd(R, 9) || !rd(&kappa, 1) || !rd(p, 6)) return 2;
-  ukf = argv[1][0] == 'u';
-  if (sscanf(argv[2], "%d", &steps) != 1 || scanf("%d", &n) != 1 || n > 20000) return 2;
-  for (i = 0; i < n; ++i) if (!rd(&T[i], 1) || !rd(&Z[3 * i], 3) || !rd(&QS[2 * i], 2)) return 2;
-  if (part == 'r') {
-    start = now();
-    code = run(ukf, n, steps);
-    printf("%.6f %d\n", 1e6 * (now() - start) / steps, code);
-    return 0;
-  }
-  memcpy(x, x0, sizeof x); memcpy(P, P0, sizeof P);
-  nb = steps / 100 > 1000 ? 1000 : steps / 100;
-  for (b = 0, k = 0; b < nb; ++b) {
-    start = now();
-    for (i = 0; i < 100; ++i, ++k) {
-      int j = 1 + k % (n - 1);
-      if (j == 1) { memcpy(x, x0, sizeof x); memcpy(P, P0, sizeof P); }
-      code |= call(ukf, part, j, dt);
-    }
-    batches[b] = (now() - start) / 100;
-  }
-  for (i = 1; i < nb; ++i) { double v = batches[i]; int m = i - 1; while (m >= 0 && batches[m] > v) { batches[m + 1] = batches[m]; --m; } batches[m + 1] = v; }
-  printf("%.6f %d\n", 1e6 * batches[nb / 2], code);
-  return 0;
-}
-"""
 
 
 #: Parts of a step counted by ``--instructions``: the predict and update calls on their own,
@@ -331,15 +251,15 @@ int main(int argc, char **argv) {
 PARTS = ("predict", "update", "step", "run")
 #: Exclusive instructions per call of the functions around the kernels (rows of the parts table):
 #: ``wrapper``, the public step function's own work (input checks, z masking, argument set-up,
-#: output checks and copies); ``composition``, the fused-step kernel that called predict and
-#: update before 12 (its copies and selections; the C API now calls the two itself); ``loop``,
+#: output checks and copies); ``composition``, a fused-step kernel's own work (its copies and
+#: selections; 0 while the C API calls predict and update itself); ``loop``,
 #: the run loop's own work per step (its per-step checks, the state history).
 SELF_COSTS = {"wrapper": ("step", ("{m}_{f}_step_radar", "{m}_{f}_step_radar_eval")),
               "composition": ("step", ("{m}_k_{f}_step_radar", "{m}_k_{f}_step_radar_casadi_copy")),
               "loop": ("run", ("{m}_{f}_step_radar_run",))}
 
 
-#: Where the fused step's instructions go (rows of the parts table, issue 12): exclusive counts of
+#: Where the fused step's instructions go (rows of the parts table): exclusive counts of
 #: the functions of one ``step`` call, grouped by a test on the function's name (``m`` the model,
 #: ``f`` the filter): the propagation (f_d and F, or f_d at the sigma points, with their event
 #: dispatchers), the measurement function (h and H; the UKF inlines h in its update kernel), the
@@ -368,7 +288,7 @@ def c_loop_instructions(work: Workload) -> dict[str, dict]:
     if not shutil.which("valgrind"):
         return out
     with tempfile.TemporaryDirectory() as tmp:
-        exe = callgrind.compile_driver(directory, C_LOOP, Path(tmp) / "c_loop", defines=("-D_POSIX_C_SOURCE=199309L",))
+        exe = _compile_c_loop(directory, Path(tmp))
         stdin = _c_loop_input(work)
         for family in FILTERS:
             counts = {part: _instructions_per_step(exe, family, part, stdin, Path(tmp)) for part in PARTS}
@@ -411,14 +331,13 @@ def time_filterpy(model, family: str, work: Workload, steps: int) -> float | Non
     except ImportError:
         return None
     step = make_filterpy_filter(model, family, work.x0, work.P0, TUNING["Q"], TUNING["kappa"])
-    batches, batch = [], 50
-    for b in range(max(1, steps // batch)):
-        start = time.perf_counter()
+    batch = 50
+
+    def steps_of(b):
         for k in range(b * batch, (b + 1) * batch):
             i = work.index(k)
             step(work.base_times[i - 1], 1.0 / RATE_HZ, work.z[i], work.q[i])
-        batches.append(time.perf_counter() - start)
-    return _median_us(batches, batch)
+    return timing.interleaved({"filterpy": steps_of}, max(1, steps // batch), calls=batch)["filterpy"].us
 
 
 def measure(steps: int, reference_steps: int, campaign: bool, instructions: bool = False,
@@ -445,7 +364,6 @@ def measure(steps: int, reference_steps: int, campaign: bool, instructions: bool
               "ratios by round": spread, "steps": steps, "reference_steps": reference_steps}
     if campaign:
         report.update(time_campaign(scheduler))
-    report["targets"] = targets(report)
     return report
 
 
@@ -477,58 +395,6 @@ def campaign_build(campaign: Campaign) -> dict:
             "unit_optimization": sorted(set((manifest.get("unit_optimization") or {}).values()))}
 
 
-#: Issue 12's figures on main before this work ("today", from the issue text) and its targets;
-#: (lower is better).
-ISSUE_12 = {
-    "ekf instructions/step": (16554, 11000), "ukf instructions/step": (50499, 35000),
-    "ekf compiled_step/c_loop": (2.24, 1.5), "ukf compiled_step/c_loop": (1.67, 1.5),
-    "campaign 4x100x2 wall s": (22.9, 15.0),
-}
-#: The same measures on main 32a5243 (after issue 11's branch-free event split, before the
-#: branching one): instructions per call of each part, counted by this harness (callgrind) on that
-#: commit's build; the campaign's wall time as measured at the end of that session (shared machine).
-MAIN_32A5243 = {
-    "ekf instructions/step": 27289, "ukf instructions/step": 82574,
-    "ekf compiled_step/c_loop": None, "ukf compiled_step/c_loop": None,
-    "campaign 4x100x2 wall s": 69.0,
-}
-INSTRUCTIONS_32A5243 = {
-    "ekf": {"predict": 20431, "update": 7040, "step": 27289, "run": 27423},
-    "ukf": {"predict": 65684, "update": 16991, "step": 82574, "run": 82710},
-}
-#: Main 2ce85cb (units per kernel at -O1, before issue 12's instruction cuts), counted by this
-#: harness on that commit's build.
-INSTRUCTIONS_2CE85CB = {
-    "ekf": {"predict": 12809, "update": 7204, "step": 20799, "run": 21036, "wrapper": 1513, "composition": 1722,
-            "loop": 250},
-    "ukf": {"predict": 35625, "update": 13053, "step": 49518, "run": 49754, "wrapper": 1521, "composition": 1732,
-            "loop": 251},
-}
-
-#: Main e7e3660 (before this session's instruction cuts of issue 12: glue at -O1, helpers called,
-#: full-matrix UKF covariances), counted by this harness on that commit's build, with the step's
-#: breakdown by function (:data:`STEP_FUNCTIONS`).
-INSTRUCTIONS_E7E3660 = {
-    "ekf": {"predict": 12132, "update": 5714, "step": 17146, "run": 16895, "wrapper": 1217, "composition": 0,
-            "loop": 336, "step: propagation": 6681, "step: h and H": 337, "step: predict kernel": 2531,
-            "step: update kernel": 3580, "step: libm": 2748},
-    "ukf": {"predict": 35322, "update": 12809, "step": 47482, "run": 47223, "wrapper": 1228, "composition": 0,
-            "loop": 336, "step: propagation": 11208, "step: h and H": 0, "step: predict kernel": 3820,
-            "step: update kernel": 5113, "step: libm": 26060},
-}
-
-
-def targets(report: dict) -> dict:
-    """Each issue-12 measure: the issue's figure, 32a5243's, the target, this run's, and whether it is met."""
-    count = {r["filter"]: r.get("instructions_per_step") for r in report["rows"] if r["path"] == "c_loop"}
-    now = {f"{f} instructions/step": count.get(f) for f in FILTERS}
-    now.update({f"{f} compiled_step/c_loop": report["ratios"][f]["compiled_step/c_loop"] for f in FILTERS})
-    now["campaign 4x100x2 wall s"] = report.get("campaign_wall_s")
-    return {name: {"today": today, "main_32a5243": MAIN_32A5243[name], "target": target, "now": now[name],
-                   "met": None if now[name] is None else bool(now[name] <= target)}
-            for name, (today, target) in ISSUE_12.items()}
-
-
 def campaign_lines(report: dict) -> list[str]:
     """The campaign's wall and CPU seconds, where the CPU went, and the build it ran."""
     runs, build = report["campaign_run_cpu_s"], report["campaign_build"]
@@ -543,22 +409,15 @@ def campaign_lines(report: dict) -> list[str]:
 
 def instruction_parts_table(report: dict) -> list[str]:
     """Instructions per call of each part (predict, update, fused step, a step inside the run
-    loop), of the code around the kernels (SELF_COSTS) and of the step's functions (STEP_FUNCTIONS),
-    on 32a5243, 2ce85cb, e7e3660 and now."""
+    loop), of the code around the kernels (SELF_COSTS) and of the step's functions (STEP_FUNCTIONS)."""
     parts = {r["filter"]: r["instructions_by_part"] for r in report["rows"] if "instructions_by_part" in r}
     if not parts:
         return []
-    columns = (("32a5243", INSTRUCTIONS_32A5243), ("2ce85cb", INSTRUCTIONS_2CE85CB), ("e7e3660", INSTRUCTIONS_E7E3660),
-               ("now", parts))
-    lines = ["", f"{'instructions per call':<26}" + "".join(f"{f.upper() + ' ' + when:>13}" for f in FILTERS
-                                                            for when, _ in columns)]
-
-    def cell(value) -> str:
-        return f"{'-':>13}" if value is None else f"{value:>13,.0f}"
+    lines = ["", f"{'instructions per call':<26}" + "".join(f"{f.upper():>13}" for f in FILTERS)]
     for part in (*PARTS, *SELF_COSTS, *STEP_FUNCTIONS):
         label = {"wrapper": "step: wrapper, checks", "composition": "step: composition",
                  "loop": "run: loop, checks"}.get(part, part)
-        lines.append(f"{label:<26}" + "".join(cell(figures[f].get(part)) for f in FILTERS for _, figures in columns))
+        lines.append(f"{label:<26}" + "".join(f"{parts[f].get(part, 0):>13,.0f}" for f in FILTERS))
     return lines
 
 
@@ -604,12 +463,5 @@ def human_table(report: dict) -> str:
                      f"each round's: {min(by_round):.2f}-{max(by_round):.2f})")
     if "campaign_wall_s" in report:
         lines += campaign_lines(report)
-    def figure(value) -> str:
-        return "-" if value is None else (f"{value:,.0f}" if value >= 1000 else f"{value:.3g}")
     lines += instruction_parts_table(report)
-    lines += ["", f"{'issue 12':<28}{'today':>10}{'32a5243':>10}{'target':>10}{'now':>10}  met"]
-    for name, row in report["targets"].items():
-        met = "-" if row["met"] is None else ("yes" if row["met"] else "NO")
-        lines.append(f"{name:<28}{figure(row['today']):>10}{figure(row['main_32a5243']):>10}"
-                     f"{figure(row['target']):>10}{figure(row['now']):>10}  {met}")
     return "\n".join(lines)

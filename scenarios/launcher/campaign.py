@@ -18,7 +18,7 @@ Two named filter configurations (``PRESETS``, ``--filters``), each a codegen con
   loose enough that the radar data, not the prior, set the covariance within seconds. The floor
   and the factor 10 were chosen on calibration draws (seed 1, 10 runs) by the fraction of time
   the average NEES lies in its 95 % band; the reported campaign uses seed 2005.
-- ``paper-like``: the best-supported reading of what the paper ran (issue 11, evidence in
+- ``paper-like``: the best-supported reading of what the paper ran (evidence in
   docs/paper004_reproduction.md): EKF = one explicit Euler step per radar sample with
   Phi = I + A dt, UKF = RK4, neither split at events; the earlier tuning Q = diag(0.005 (m/s)^2/s,
   1e-12, 1e-12 rad^2/s, 0.005 m^2/s, 1e-16, 1e-16 rad^2/s) (Q dt per step) and floor
@@ -242,12 +242,11 @@ class Campaign:
 
     ``scheduler``: None (local threads, ``workers`` of them), ``"local:N"`` (a Dask LocalCluster)
     or a Dask scheduler address; see :mod:`symkf.scenarios.campaign`. ``build``: codegen options
-    added to the preset's (default none: the model's default build, models/launcher.py). Measured
-    for issue 12 (default campaign, interleaved, twice each, 2-core VM): the whole library at -O3
-    (``{"optimization": "-O3 -fno-math-errno"}``, IEEE only, per-run results bit-identical, tested)
-    cut the compiled runs 34.3 -> 32.2 CPU-s against 080f4df's default build, but 31.9 vs 31.7
-    against c0fe573's (glue units at -O3, the model's functions at -O1 -fno-thread-jumps), for 4.4 s
-    more compiler CPU per cold build: so the default build it is.
+    added to the preset's (default none: the model's default build, models/launcher.py). The whole
+    library at -O3 (``{"optimization": "-O3 -fno-math-errno"}``, IEEE only, per-run results
+    bit-identical, tested) saves under 1 % of the compiled runs' CPU against the default build
+    (glue units at -O3, the model's functions at -O1 -fno-thread-jumps) for 4.4 s more compiler CPU
+    per cold build: so the default build it is.
     """
 
     def __init__(self, runs: int, seed: int, rates=L.RADAR_RATES_HZ, duration: float = L.T_INSERTION,

@@ -1,4 +1,4 @@
-"""symkf compare launcher — paper 004's EKF-vs-UKF Monte Carlo (Table 3, Figs 5-6) with ours beside.
+"""Paper 004's EKF-vs-UKF Monte Carlo (Table 3, Figs 5-6) with ours beside.
 
 4 cases (20 Hz and 10 Hz radar x small eq (9) and large eq (10) initial error), N runs each,
 both filters fed the same radar draws, the whole run of each filter in one compiled C call.

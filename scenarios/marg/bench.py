@@ -10,7 +10,7 @@
   sensor driver hands them over), ``step_api_indexed`` (the same calls in a loop that indexes the
   recording's arrays for each sample: numpy's ``a[k]`` included, about 1,100 instructions per
   row view; the figure quoted before this split), ``step_api_python`` (the calls of
-  ``step_api`` with the fast path off: the Python contract path, as before issue 12), ``run``
+  ``step_api`` with the fast path off: the Python contract path, the path before the C fast path), ``run``
   (``MargFilter.run``: the C run loop over a whole trial), ``numpy_reference`` (``reference_run``,
   on the first ``--reference-samples`` samples). The three ``step_api`` loops are timed in
   alternate repeats (same machine load).
@@ -28,15 +28,13 @@ from __future__ import annotations
 
 import os
 import tempfile
-import time
 from pathlib import Path
-
-import numpy as np
 
 from symkf.codegen import build_model
 from symkf.models.marg import ALPHA_DEFAULT, BETA_MADGWICK
 from symkf.runtime import load
 from symkf.scenarios.marg.filter import MargFilter, reference_run
+from symkf.scenarios import timing
 from symkf.scenarios.report import emit
 from symkf.scenarios.marg.data import data_dir, load_recording, run_recording
 from symkf.scenarios.marg.metric import broad_errors
@@ -58,12 +56,7 @@ def add_arguments(parser) -> None:
 
 
 def _median_seconds(function, repeats: int) -> float:
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        function()
-        times.append(time.perf_counter() - start)
-    return float(np.median(times))
+    return timing.repeated(function, repeats).median
 
 
 def cold_build_seconds() -> float:
@@ -82,13 +75,8 @@ def cold_build_seconds() -> float:
 
 def _interleaved_medians(functions: dict, repeats: int) -> dict[str, float]:
     """Median seconds of each function, called in turn ``repeats`` times (same machine load)."""
-    times = {name: [] for name in functions}
-    for _ in range(repeats):
-        for name, function in functions.items():
-            start = time.perf_counter()
-            function()
-            times[name].append(time.perf_counter() - start)
-    return {name: float(np.median(t)) for name, t in times.items()}
+    samples = timing.interleaved({name: lambda i, f=f: f() for name, f in functions.items()}, repeats)
+    return {name: s.median for name, s in samples.items()}
 
 
 def time_form(compiled, recording, form: str, args) -> dict:

@@ -43,7 +43,7 @@ def test_c_loop_does_the_work_of_compiled_step(tmp_path, launcher_compiled):
 
 
 def test_step_breakdown_groups_every_function_of_a_step_once():
-    """The parts table's rows of a step (issue 12): each function counted in one row, libm apart."""
+    """The parts table's rows of a step: each function counted in one row, libm apart."""
     from symkf.scenarios.launcher.bench import step_breakdown
     counts = {"launcher_fn_segment_and_jac": 5000.0, "launcher_fn_fd_and_jac": 150.0, "launcher_fn_h_and_jac_radar": 300.0,
               "launcher_k_ekf_predict": 2000.0, "launcher_k_ekf_update_radar": 3000.0, "__sincos_fma": 2100.0,

@@ -22,7 +22,7 @@ def test_bench_float_launcher_one_run(tmp_path, capsys):
 
 @pytest.mark.slow
 def test_bench_float_geo_closed_loops():
-    from symkf.scenarios.float.bench import GEO_RUNS, geo
+    from symkf.scenarios.toolchain.float_bench import GEO_RUNS, geo
     result = geo(50.0)
     assert set(result) == set(GEO_RUNS)
     for label, rows in result.items():

@@ -17,7 +17,7 @@ hashing; generating the kernels and their C, part by part; writing the API unit,
 Makefile; waiting for the compilers and linking), and the CPU seconds of the cold build and of the
 edit (this process, and the compilers it ran: less noisy than wall time on a shared machine). The
 phases overlap: each part's units compile while the next part is generated.
-Targets (issue 9, 2 cores): no-op <= 0.3 s; edit -> filter <= 3 s (launcher), <= 4 s (geo).
+Targets (2 cores): no-op <= 0.3 s; edit -> filter <= 3 s (launcher), <= 4 s (geo).
 """
 from __future__ import annotations
 
@@ -27,12 +27,13 @@ import re
 import resource
 import statistics
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
 
 from symkf.models import MODELS_DIR
+from symkf.scenarios import timing
+from symkf.scenarios.report import emit
 
 #: The one-line edit per model (old, new) and the target for edit -> loaded filter (s).
 EDITS = {"launcher": ("SCALE_HEIGHT = 7.2e3", "SCALE_HEIGHT = 7.3e3"),
@@ -76,21 +77,17 @@ def one_run(name: str, overrides: dict) -> dict:
         os.environ["SYMKF_BUILD_DIR"] = str(Path(tmp) / "build")
         try:
             path = user_copy(name, Path(tmp))
-            start, cpu = time.perf_counter(), _cpu_seconds()
-            _loaded_filter(path, overrides)
-            cold = time.perf_counter() - start
+            cpu = _cpu_seconds()
+            _, cold, _ = timing.timed(lambda: _loaded_filter(path, overrides))
             cold_cpu = {key: value - cpu[key] for key, value in _cpu_seconds().items()}
-            start = time.perf_counter()
-            noop_model = _loaded_filter(path, overrides)
-            noop = time.perf_counter() - start
+            noop_model, noop, _ = timing.timed(lambda: _loaded_filter(path, overrides))
             assert noop_model.build.up_to_date
             text = path.read_text()
             if old not in text:
                 raise RuntimeError(f"bench build: the line to edit ({old}) is not in models/{name}.py")
             path.write_text(text.replace(old, new, 1))
-            start, cpu = time.perf_counter(), _cpu_seconds()
-            edited = _loaded_filter(path, overrides)
-            edit = time.perf_counter() - start
+            cpu = _cpu_seconds()
+            edited, edit, _ = timing.timed(lambda: _loaded_filter(path, overrides))
             edit_cpu = {key: value - cpu[key] for key, value in _cpu_seconds().items()}
             assert not edited.build.up_to_date
             sources = json.loads(edited.build.manifest.read_text())["sources"]
@@ -148,10 +145,12 @@ def run(args) -> int:
     results = {name: measure(name, args.repeats, overrides) for name in names}
     results["_settings"] = {"repeats": args.repeats, "overrides": overrides, "cores": os.cpu_count(),
                             "load_average": os.getloadavg()}
-    if args.json:
-        print(json.dumps(results, indent=1))
-        return 0
-    print(f"model author's loop, medians of {args.repeats} (s); load average at the end "
+    emit(results, None, args.json, lambda r: _print(r, names, args.repeats, overrides))
+    return 0
+
+
+def _print(results: dict, names: list[str], repeats: int, overrides: dict) -> None:
+    print(f"model author's loop, medians of {repeats} (s); load average at the end "
           f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} cores" + (f"; options {overrides}" if overrides else ""))
     print(f"{'model':15s} {'cold build':>11s} {'no-op load':>11s} {'edit->filter':>13s} {'target':>7s}   "
           "edit: model+hash / generate+C / write / compile (s)   edit CPU s: python + compilers   units compiled")
@@ -161,4 +160,3 @@ def run(args) -> int:
               f"{TARGETS['edit_s'][name]:7.1f}   {p.get('model', 0):.2f} / {p.get('generate', 0):.2f} / "
               f"{p.get('write', 0):.2f} / {p.get('compile', 0):.2f}   {cpu['python']:.2f} + {cpu['compilers']:.2f}   "
               f"{r['edit_units_compiled']} of {r['units']} ({r['generated_c_lines']} lines of C)")
-    return 0

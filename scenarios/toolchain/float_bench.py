@@ -1,5 +1,7 @@
-"""Single precision beside double: every figure from the float build (``precision="float"``)
-next to the same figure from the default double build, on the same draws.
+"""Single precision beside double: each figure of the float build next to the double build's, on the same draws.
+
+Every figure from the float build (``precision="float"``) beside the same figure from the default
+double build.
 
     symkf bench float [--runs 100] [--attitude-runs 2] [--attitude-duration 600] [--geo-duration 1000]
                       [--json] [--out FILE] [--skip-launcher] [--skip-attitude] [--skip-marg] [--skip-geo]
@@ -23,12 +25,12 @@ next to the same figure from the default double build, on the same draws.
 """
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
 import numpy as np
 
 from symkf.models import launcher as L
+from symkf.scenarios import timing
 from symkf.scenarios.campaign import model_key
 from symkf.scenarios.report import emit
 
@@ -58,8 +60,8 @@ def launcher(runs: int, seed: int = 2005) -> dict:
     from symkf.scenarios.launcher import campaign as C
     case, out = C.Case(20, "small"), {}
     for precision in PRECISIONS:
-        start = time.perf_counter()
-        chunk = C.run_chunk(model_key("launcher", **codegen(precision)), case, seed, (0, runs), L.T_INSERTION, C.TUNING)
+        chunk, wall, _ = timing.timed(lambda: C.run_chunk(model_key("launcher", **codegen(precision)), case, seed,
+                                                          (0, runs), L.T_INSERTION, C.TUNING))
         for family in C.FILTERS:
             rms = chunk.errors[family].rms()
             whole = C.whole_flight_mean(np.where(C.ANGLE_STATES, np.degrees(rms), rms))
@@ -68,7 +70,7 @@ def launcher(runs: int, seed: int = 2005) -> dict:
             diverged = per_run[:, C.PER_RUN_COLUMNS.index("diverged")]
             out.setdefault(family, {})[precision] = {
                 "r_rms_m": float(whole[3]), "V_rms_m_s": float(whole[0]), "refused_steps": int(failed.sum()),
-                "diverged_runs": int(diverged.sum()), "runs": runs, "filter_seconds": chunk.wall_s[family], "wall_seconds": time.perf_counter() - start}
+                "diverged_runs": int(diverged.sum()), "runs": runs, "filter_seconds": chunk.wall_s[family], "wall_seconds": wall}
     return out
 
 

@@ -1,1 +1,0 @@
-"""The model author's build loop, timed (`symkf bench build`)."""

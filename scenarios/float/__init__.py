@@ -1,1 +1,0 @@
-"""Single precision beside double: ``symkf bench float`` (scenarios/float/bench.py)."""

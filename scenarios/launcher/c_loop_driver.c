@@ -1,0 +1,63 @@
+#include <stdio.h>
+#include <string.h>
+#include <time.h>
+#include "launcher.h"
+/* stdin: x0[6] P0[36] Q[36] R[9] kappa p[6] n_base, n_base lines t z[3] q[2].
+   argv[1]: ekf|ukf, argv[2]: steps, argv[3] (optional) part: step (default), predict, update, run.
+   step/predict/update: one call of launcher_<filter>_<part>[_radar] per step; run: one call of
+   launcher_<filter>_step_radar_run over all the steps. The record restarts from x0, P0 at its end. */
+static double now(void) { struct timespec ts; clock_gettime(CLOCK_MONOTONIC, &ts); return ts.tv_sec + 1e-9 * ts.tv_nsec; }
+static int rd(double *v, int n) { int i; for (i = 0; i < n; ++i) if (scanf("%lf", &v[i]) != 1) return 0; return 1; }
+static double T[20000], Z[60000], QS[40000];
+static double RT[20000], RDT[20000], RZ[60000], RQ[40000], RM[60000], XH[120000], PH[720000];
+static int SH[20000];
+static double x0[6], P0[36], x[6], P[36], Q[36], R[9], kappa, p[6], y[3], S[9], mask[3] = {1, 1, 1}, gate[3] = {0, 0, 0};
+static int call(int ukf, char part, int j, double dt) {
+  const double *q = &QS[2 * j], *z = &Z[3 * j];
+  if (part == 'p') return ukf ? launcher_ukf_predict(T[j - 1], dt, x, P, p, Q, kappa, x, P)
+                              : launcher_ekf_predict(T[j - 1], dt, x, P, p, Q, x, P);
+  if (part == 'u') return ukf ? launcher_ukf_update_radar(T[j], x, P, p, q, z, mask, R, gate, kappa, x, P, y, S)
+                              : launcher_ekf_update_radar(T[j], x, P, p, q, z, mask, R, gate, x, P, y, S);
+  return ukf ? launcher_ukf_step_radar(T[j - 1], dt, x, P, p, Q, q, z, mask, R, gate, kappa, x, P, y, S)
+             : launcher_ekf_step_radar(T[j - 1], dt, x, P, p, Q, q, z, mask, R, gate, x, P, y, S);
+}
+static int run(int ukf, int n, int steps) {
+  int k, i;
+  if (steps > n - 1 || steps > 20000) return -1;
+  for (k = 0; k < steps; ++k) {
+    RT[k] = T[k]; RDT[k] = T[k + 1] - T[k];
+    for (i = 0; i < 3; ++i) { RZ[3 * k + i] = Z[3 * (k + 1) + i]; RM[3 * k + i] = 1; }
+    for (i = 0; i < 2; ++i) RQ[2 * k + i] = QS[2 * (k + 1) + i];
+  }
+  return ukf ? launcher_ukf_step_radar_run(steps, RT, RDT, x0, P0, p, Q, RQ, RZ, RM, R, gate, kappa, XH, PH, SH)
+             : launcher_ekf_step_radar_run(steps, RT, RDT, x0, P0, p, Q, RQ, RZ, RM, R, gate, XH, PH, SH);
+}
+int main(int argc, char **argv) {
+  double dt = 0.05, batches[1000], start;
+  int n, i, k, b, nb, steps, ukf, code = 0;
+  char part = argc > 3 ? argv[3][0] : 's';
+  if (argc < 3 || !rd(x0, 6) || !rd(P0, 36) || !rd(Q, 36) || !rd(R, 9) || !rd(&kappa, 1) || !rd(p, 6)) return 2;
+  ukf = argv[1][0] == 'u';
+  if (sscanf(argv[2], "%d", &steps) != 1 || scanf("%d", &n) != 1 || n > 20000) return 2;
+  for (i = 0; i < n; ++i) if (!rd(&T[i], 1) || !rd(&Z[3 * i], 3) || !rd(&QS[2 * i], 2)) return 2;
+  if (part == 'r') {
+    start = now();
+    code = run(ukf, n, steps);
+    printf("%.6f %d\n", 1e6 * (now() - start) / steps, code);
+    return 0;
+  }
+  memcpy(x, x0, sizeof x); memcpy(P, P0, sizeof P);
+  nb = steps / 100 > 1000 ? 1000 : steps / 100;
+  for (b = 0, k = 0; b < nb; ++b) {
+    start = now();
+    for (i = 0; i < 100; ++i, ++k) {
+      int j = 1 + k % (n - 1);
+      if (j == 1) { memcpy(x, x0, sizeof x); memcpy(P, P0, sizeof P); }
+      code |= call(ukf, part, j, dt);
+    }
+    batches[b] = (now() - start) / 100;
+  }
+  for (i = 1; i < nb; ++i) { double v = batches[i]; int m = i - 1; while (m >= 0 && batches[m] > v) { batches[m + 1] = batches[m]; --m; } batches[m + 1] = v; }
+  printf("%.6f %d\n", 1e6 * batches[nb / 2], code);
+  return 0;
+}

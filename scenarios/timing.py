@@ -1,0 +1,84 @@
+"""Timing for every bench: functions called in interleaved rounds (so that they see the same machine
+load), wall time and this thread's CPU time of each call, medians, minimum and maximum, and the
+per-round ratio of two timings (the spread of a comparison on a shared machine).
+
+    samples = interleaved({"a": lambda i: step_a(), "b": lambda i: step_b()}, rounds=7, calls=1000)
+    samples["a"].us           # median µs per call of a
+    round_ratios(samples["a"], samples["b"])
+
+A function is called with the round's index (a batch of a long record starts where that index
+says); ``calls`` divides each round's time into a time per call.
+"""
+from __future__ import annotations
+
+import statistics
+import time
+from dataclasses import dataclass
+from typing import Callable, Mapping, Sequence
+
+
+@dataclass(frozen=True)
+class Samples:
+    """Seconds per call of each round: ``wall`` (perf_counter) and ``cpu`` (this thread's CPU time,
+    less sensitive to other jobs on the machine than wall time)."""
+    wall: tuple[float, ...]
+    cpu: tuple[float, ...]
+
+    @property
+    def median(self) -> float:
+        return statistics.median(self.wall)
+
+    @property
+    def min(self) -> float:
+        return min(self.wall)
+
+    @property
+    def max(self) -> float:
+        return max(self.wall)
+
+    @property
+    def cpu_median(self) -> float:
+        return statistics.median(self.cpu)
+
+    @property
+    def us(self) -> float:
+        """Median µs per call."""
+        return 1e6 * self.median
+
+
+def timed(function: Callable[[], object]) -> tuple[object, float, float]:
+    """(what ``function`` returns, its wall seconds, this thread's CPU seconds) of one call."""
+    start, cpu = time.perf_counter(), time.thread_time()
+    result = function()
+    return result, time.perf_counter() - start, time.thread_time() - cpu
+
+
+def interleaved(functions: Mapping[str, Callable[[int], object]], rounds: int, calls: int = 1) -> dict[str, Samples]:
+    """Each function called once per round, in turn (round ``i`` calls every function with ``i``
+    before round ``i + 1`` starts); the samples are seconds per call (a round's time / ``calls``)."""
+    wall = {name: [] for name in functions}
+    cpu = {name: [] for name in functions}
+    for i in range(max(1, rounds)):
+        for name, function in functions.items():
+            _, w, c = timed(lambda: function(i))
+            wall[name].append(w / calls)
+            cpu[name].append(c / calls)
+    return {name: Samples(tuple(wall[name]), tuple(cpu[name])) for name in functions}
+
+
+def repeated(function: Callable[[], object], rounds: int, calls: int = 1) -> Samples:
+    """One function timed ``rounds`` times (:func:`interleaved` with nothing to alternate with)."""
+    return interleaved({"f": lambda i: function()}, rounds, calls)["f"]
+
+
+def round_ratios(numerator: Samples | Sequence[float], denominator: Samples | Sequence[float]) -> list[float]:
+    """numerator / denominator of each round (wall time, or figures of one round each): timings
+    taken under the same load."""
+    def values(s):
+        return s.wall if isinstance(s, Samples) else s
+    return [a / b for a, b in zip(values(numerator), values(denominator))]
+
+
+def medians(samples: Mapping[str, Samples]) -> dict[str, float]:
+    """Median µs per call of each timing."""
+    return {name: s.us for name, s in samples.items()}
