@@ -39,7 +39,7 @@ import numpy as np
 
 from symkf.models.marg import ALPHA_DEFAULT, BETA_MADGWICK
 from symkf.runtime import load
-from symkf.scenarios.marg.filter import MargFilter
+from symkf.scenarios.marg.filter import make_filter
 from symkf.scenarios.marg import ekf
 from symkf.scenarios.marg.data import Recording, broad_trials, data_dir, load_recording, run_recording
 from symkf.scenarios.marg.metric import broad_errors, error_rotation_vectors, euler_angles, from_enu, to_enu
@@ -124,15 +124,15 @@ def _still(recording: Recording) -> np.ndarray | None:
 
 # ---------------------------------------------------------------------- one beta
 def run_beta(compiled, recording: Recording, beta: float, args) -> tuple[dict, np.ndarray]:
-    filt = MargFilter(compiled, args.form, args.mode, beta=beta, alpha=args.alpha)
-    result = run_recording(filt, recording)
-    angles = euler_angles(result.q)
+    filt = make_filter(compiled, args.form, beta=beta, alpha=args.alpha)
+    result = run_recording(compiled, filt, recording, args.mode)
+    angles = euler_angles(result.x)
     rate = 1 / np.median(recording.dt[1:])
     entry = {"beta": beta, "failed_steps": int(result.failed_steps.size),
              "oscillation": oscillation(angles, rate, args.hf_cutoff, _still(recording))}
     if recording.reference is not None:
-        entry["broad_rmse_deg"] = broad_errors(result.q, recording)
-        error = np.degrees(error_rotation_vectors(to_enu(result.q), recording.reference))
+        entry["broad_rmse_deg"] = broad_errors(result.x, recording)
+        error = np.degrees(error_rotation_vectors(to_enu(result.x), recording.reference))
         error_hf = high_frequency_rms(error, rate, args.hf_cutoff)
         entry["oscillation"]["error_hf_rms_deg"] = float(np.linalg.norm(error_hf))
     return entry, angles
@@ -292,8 +292,8 @@ FILTERS = ("madgwick_0.041", "madgwick_best", "mekf")
 def trial_row(madgwick, mekf, recording: Recording, args) -> dict:
     """One trial: Madgwick at β = 0.041, at its best β of the grid, and the generated MEKF."""
     betas = sorted(set(SWEEP_BETAS.tolist()) | {BETA_MADGWICK})
-    errors = {beta: broad_errors(run_recording(MargFilter(madgwick, args.form, "marg", beta=beta, alpha=args.alpha),
-                                               recording).q, recording) for beta in betas}
+    errors = {beta: broad_errors(run_recording(madgwick, make_filter(madgwick, args.form, beta=beta, alpha=args.alpha),
+                                               recording).x, recording) for beta in betas}
     best = min(betas, key=lambda beta: errors[beta]["total"])
     result = ekf.run_recording(mekf, recording)
     return {"trial": recording.name, "samples": len(recording), "best_beta": best,
