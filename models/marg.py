@@ -2,8 +2,18 @@
 
 Paper 001: Ryang, Kim, "Characteristics of attitude estimation using a gradient descent
 algorithm" (2020), a Madgwick-type complementary filter. This file holds the paper's equations
-once, symbolically; ``codegen/families/marg.py`` builds the filter steps (26)-(31) from them and
-``scenarios/marg/filter.py`` evaluates them for the NumPy reference.
+once, symbolically, and :func:`build` declares them as a :class:`~symkf.models.base.Model` that
+``codegen/families/gradient_descent.py`` builds the filter steps (26)-(31) from (and
+``runtime/reference/gradient_descent.py`` the NumPy reference):
+
+- dynamics: the gyro quaternion rate (7)-(8), the gyro ω as the input u;
+- measurements, the measured direction as z: ``"imu"`` (3) the accelerometer direction a/|a|,
+  h = gravity reference (16) in the sensor frame, so that f_g = h - z is (18); ``"marg"`` (6)
+  accelerometer and magnetometer directions [a/|a|; m/|m|], h = [gravity; earth-field reference
+  (20)] in the sensor frame, the reference b = [bx, 0, bz] the measurement's parameters, so that
+  f_{g,b} = h - z is (24);
+- ``Model.functions``: ``"earth_field_reference"`` (x, m) -> [bx, bz] (below) and
+  ``"initial_orientation"`` (a, m) -> x (TRIAD).
 
 Conventions:
 - The paper writes quaternions **scalar-first** ``[q1 q2 q3 q4]`` (q1 the scalar). The project
@@ -106,26 +116,38 @@ def objective_components(q, d, s) -> ca.SX:
         2 * dx * (q1 * q3 + q2 * q4) + 2 * dy * (q3 * q4 - q1 * q2) + 2 * dz * (0.5 - q2**2 - q3**2) - s[2])
 
 
-def objective_gravity(q, a) -> ca.SX:
-    """Eq (18): f_g(q, a) with the gravity reference (16) and a normalised accelerometer sample a."""
+def gravity_direction(q) -> ca.SX:
+    """Eq (18) without the sample: the gravity reference (16) seen in the sensor frame,
+    q* ⊗ [0 0 1] ⊗ q; the model's accelerometer measurement."""
     q1, q2, q3, q4 = ca.vertsplit(to_scalar_first(q))
     return ca.vertcat(
-        2 * (q2 * q4 - q1 * q3) - a[0],
-        2 * (q1 * q2 + q3 * q4) - a[1],
-        2 * (0.5 - q2**2 - q3**2) - a[2])
+        2 * (q2 * q4 - q1 * q3),
+        2 * (q1 * q2 + q3 * q4),
+        2 * (0.5 - q2**2 - q3**2))
 
 
-def objective_earth_field(q, b, m) -> ca.SX:
-    """Eq (22): f_b(q, b, m) with the reference (20) b = [bx, 0, bz] and a normalised magnetometer m.
+def objective_gravity(q, a) -> ca.SX:
+    """Eq (18): f_g(q, a) with the gravity reference (16) and a normalised accelerometer sample a."""
+    return gravity_direction(q) - a
+
+
+def earth_field_direction(q, b) -> ca.SX:
+    """Eq (22) without the sample: the earth-field reference (20) b = [bx, 0, bz] seen in the sensor
+    frame; the model's magnetometer measurement.
 
     ``b`` is given as the 3-vector ``[bx, 0, bz]``; its middle entry is ignored (zero by (20)).
     """
     q1, q2, q3, q4 = ca.vertsplit(to_scalar_first(q))
     bx, bz = b[0], b[2]
     return ca.vertcat(
-        2 * bx * (0.5 - q3**2 - q4**2) + 2 * bz * (q2 * q4 - q1 * q3) - m[0],
-        2 * bx * (q2 * q3 - q1 * q4) + 2 * bz * (q1 * q2 + q3 * q4) - m[1],
-        2 * bx * (q1 * q3 + q2 * q4) + 2 * bz * (0.5 - q2**2 - q3**2) - m[2])
+        2 * bx * (0.5 - q3**2 - q4**2) + 2 * bz * (q2 * q4 - q1 * q3),
+        2 * bx * (q2 * q3 - q1 * q4) + 2 * bz * (q1 * q2 + q3 * q4),
+        2 * bx * (q1 * q3 + q2 * q4) + 2 * bz * (0.5 - q2**2 - q3**2))
+
+
+def objective_earth_field(q, b, m) -> ca.SX:
+    """Eq (22): f_b(q, b, m) with the reference (20) b = [bx, 0, bz] and a normalised magnetometer m."""
+    return earth_field_direction(q, b) - m
 
 
 def objective_stacked(q, a, b, m) -> ca.SX:
@@ -196,14 +218,35 @@ def build() -> Model:
     wz = m.input("gyro_z", "rad/s", "gyroscope, sensor z")
     m.param("beta", "rad/s", "eq (30)-(31): gyro-error convergence rate (filter gain)", BETA_MADGWICK)
     m.param("alpha", "-", "eq (28): step-size factor of the full form, alpha > 1", ALPHA_DEFAULT)
-    q_dot = quaternion_rate(ca.vertcat(qx, qy, qz, qw), ca.vertcat(wx, wy, wz))   # eq (7)
+    q = ca.vertcat(qx, qy, qz, qw)
+    q_dot = quaternion_rate(q, ca.vertcat(wx, wy, wz))   # eq (7)
     m.set_dynamics({name: q_dot[i] for i, name in enumerate(("qx", "qy", "qz", "qw"))})
-    m.filters = ("marg",)
+    # the measurements are the directions the objectives (18), (22) compare with the normalised
+    # samples: f = h(q) - z. The filter has no noise model; sigma is only what Model requires.
+    accelerometer = [(f"acc_{axis}", "-", f"accelerometer direction a/|a|, sensor {axis}", g)
+                     for axis, g in zip("xyz", ca.vertsplit(gravity_direction(q)))]
+    m.measurement("imu", accelerometer, sigma=[1.0] * 3)
+    bx, bz = m.measurement_params("marg", [("bx", "-", "earth-field reference (20), north component"),
+                                           ("bz", "-", "earth-field reference (20), vertical component")])
+    magnetometer = [(f"mag_{axis}", "-", f"magnetometer direction m/|m|, sensor {axis}", h)
+                    for axis, h in zip("xyz", ca.vertsplit(earth_field_direction(q, ca.vertcat(bx, 0, bz))))]
+    m.measurement("marg", accelerometer + magnetometer, sigma=[1.0] * 6)
+    m.generic_kernels = ("f", "fd", "jac_fd")
+    # what the gradient-descent family needs beyond h(q) vs z (names: codegen/families/gradient_descent.py)
+    x, sample, a = ca.SX.sym("x", 4), ca.SX.sym("m", 3), ca.SX.sym("a", 3)
+    b = earth_field_reference(x, sample)
+    m.functions = {
+        "earth_field_reference": ca.Function("marg_earth_field_reference", [x, sample], [ca.vertcat(b[0], b[2])],
+                                             ["x", "m"], ["q"], {"cse": True}),
+        "initial_orientation": ca.Function("marg_initial_orientation", [a, sample],
+                                           [initial_orientation(a, sample)], ["a", "m"], ["x"], {"cse": True}),
+    }
+    m.filters = ("gradient_descent",)
     return m
 
 
 __all__ = ["ALPHA_DEFAULT", "BETA_FIG3", "BETA_MADGWICK", "GRAVITY_REFERENCE", "build",
-           "earth_field_reference", "euler_angles", "gyro_integration",
+           "earth_field_direction", "earth_field_reference", "euler_angles", "gravity_direction", "gyro_integration",
            "initial_orientation", "objective_components", "objective_earth_field", "objective_general",
            "objective_gradient", "objective_gravity", "objective_stacked", "paper_rotation_matrix",
            "quaternion_rate", "sensor_euler_angles"]

@@ -5,7 +5,7 @@ column). One module per family, each with the compiled filter's shape (``x``, ``
 - :mod:`.kalman`: :class:`ReferenceFilter`, the EKF and UKF of ``codegen/families/kalman.py``;
 - :mod:`.cd_ekf`: :class:`NumpyCDEKF`, the continuous-discrete EKF;
 - :mod:`.manifold`: :class:`ManifoldReference`, the multiplicative EKF and the manifold UKF;
-- :mod:`.gradient_descent`: :class:`ReferenceMarg`, the gradient-descent orientation filter.
+- :mod:`.gradient_descent`: :class:`ReferenceGradientDescent`, the gradient-descent orientation filter.
 
 :func:`for_family` finds the reference of a family by its name. The model is evaluated through
 CasADi (the same Functions the C code calls); compiled and reference filters agree to round-off
@@ -15,13 +15,13 @@ from __future__ import annotations
 
 from .cd_ekf import NumpyCDEKF
 from .common import wrap_angle
-from .gradient_descent import ReferenceMarg
+from .gradient_descent import ReferenceGradientDescent
 from .kalman import ReferenceFilter
 from .manifold import ManifoldReference
 
 #: The NumPy reference of each generated family.
 REFERENCE_OF_FAMILY = {"ekf": ReferenceFilter, "ukf": ReferenceFilter, "cd_ekf": NumpyCDEKF,
-                       "mekf": ManifoldReference, "mukf": ManifoldReference}
+                       "mekf": ManifoldReference, "mukf": ManifoldReference, "gradient_descent": ReferenceGradientDescent}
 
 
 def for_family(family: str):
@@ -33,4 +33,4 @@ def for_family(family: str):
                        f"{', '.join(sorted(REFERENCE_OF_FAMILY))}") from None
 
 
-__all__ = ["ManifoldReference", "NumpyCDEKF", "ReferenceFilter", "ReferenceMarg", "for_family", "wrap_angle"]
+__all__ = ["ManifoldReference", "NumpyCDEKF", "ReferenceFilter", "ReferenceGradientDescent", "for_family", "wrap_angle"]

@@ -5,16 +5,16 @@
 - Build: seconds to generate and compile the ``marg`` bundle from scratch (temporary build dir).
 - µs per sample (medians over repeats) for the simplified (31) and full (26)-(30) 9-axis forms:
   ``step_bound`` (one bound C call, inputs already in the buffers: the floor of a per-sample
-  call from Python), ``step_api`` (``MargFilter.step``: argument checks and copies included; the
+  call from Python), ``step_api`` (``Filter.step``: argument checks and copies included; the
   C fast path of runtime/fastcall.py; each sample's arrays made before the timed loop, as a
   sensor driver hands them over), ``step_api_indexed`` (the same calls in a loop that indexes the
   recording's arrays for each sample: numpy's ``a[k]`` included, about 1,100 instructions per
   row view; the figure quoted before this split), ``step_api_python`` (the calls of
   ``step_api`` with the fast path off: the Python contract path, the path before the C fast path), ``run``
-  (``MargFilter.run``: the C run loop over a whole trial), ``numpy_reference`` (``reference_run``,
+  (``Filter.run``: the C run loop over a whole trial), ``numpy_reference`` (``ReferenceGradientDescent.run``,
   on the first ``--reference-samples`` samples). The three ``step_api`` loops are timed in
   alternate repeats (same machine load).
-- The generated multiplicative EKF of ``models/marg_ekf.py`` (``mekf``): µs per sample for
+- The generated multiplicative EKF of ``models/marg_mekf.py`` (``mekf``): µs per sample for
   ``step_bound`` (the bound checked C step, buffers filled), ``step_api``, ``step_api_indexed``
   and ``step_api_python`` (``Filter.step``, as above; after its first step the fast path calls
   the trusted kernel, runtime/filters.py) and ``run`` (``Filter.run`` over the whole trial:
@@ -33,12 +33,13 @@ from pathlib import Path
 from symkf.codegen import build_model
 from symkf.models.marg import ALPHA_DEFAULT, BETA_MADGWICK
 from symkf.runtime import load
-from symkf.scenarios.marg.filter import MargFilter, reference_run
+from symkf.runtime.reference.gradient_descent import ReferenceGradientDescent
+from symkf.scenarios.marg.filter import initial_orientation, make_filter, samples
 from symkf.scenarios import timing
 from symkf.scenarios.report import emit
 from symkf.scenarios.marg.data import data_dir, load_recording, run_recording
-from symkf.scenarios.marg.metric import broad_errors
-from . import ekf
+from symkf.scenarios.marg.broad_metric import broad_errors
+from . import mekf
 from .instructions import count_instructions
 from .compare import SWEEP_BETAS
 
@@ -81,35 +82,36 @@ def _interleaved_medians(functions: dict, repeats: int) -> dict[str, float]:
 
 def time_form(compiled, recording, form: str, args) -> dict:
     n_step = min(args.step_samples, len(recording))
-    filt = MargFilter(compiled, form, "marg", beta=BETA_MADGWICK)
-    filt.initialize(recording.acc[0], recording.mag[0])
+    z = samples(recording.acc, recording.mag)
+    filt = make_filter(compiled, form, beta=BETA_MADGWICK, q0=initial_orientation(compiled, z[0]))
     bound = filt.kernel_call("step", "marg")   # the raw bound kernel call (buffers already filled)
-    dt, gyro, acc, mag = recording.dt, recording.gyro, recording.acc, recording.mag
+    time_, dt, gyro = recording.time, recording.dt, recording.gyro
 
     def raw_steps():
         for _ in range(n_step):
             bound()
 
-    python = MargFilter(compiled, form, "marg", beta=BETA_MADGWICK, q0=filt.q)
+    python = make_filter(compiled, form, beta=BETA_MADGWICK, q0=filt.x)
     python.fast_path = False
-    samples = [(dt[k], gyro[k], acc[k], mag[k]) for k in range(1, n_step)]   # dt[0] = 0: a run's start
+    per_sample = [(time_[k - 1], dt[k], z[k], gyro[k]) for k in range(1, n_step)]   # dt[0] = 0: a run's start
 
     def api_steps(f=filt):
-        for dt_k, gyro_k, acc_k, mag_k in samples:
-            f.step(dt_k, gyro_k, acc_k, mag_k)
+        for t_k, dt_k, z_k, gyro_k in per_sample:
+            f.step(t_k, dt_k, z_k, "marg", u=gyro_k)
 
     def indexed_steps(f=filt):
         for k in range(1, n_step):
-            f.step(dt[k], gyro[k], acc[k], mag[k])
+            f.step(time_[k - 1], dt[k], z[k], "marg", u=gyro[k])
 
     def whole_run():
-        filt.run(dt, gyro, acc, mag)
+        filt.run(time_, z, "marg", u=gyro)
 
     m = min(args.reference_samples, len(recording))
-    q0 = filt.initialize(recording.acc[0], recording.mag[0]).copy()
+    q0 = initial_orientation(compiled, z[0])
 
     def reference():
-        reference_run(form, "marg", q0, dt[:m], gyro[:m], acc[:m], mag[:m], BETA_MADGWICK, ALPHA_DEFAULT)
+        ReferenceGradientDescent("marg", f"gd_{form}", q0, p=[BETA_MADGWICK, ALPHA_DEFAULT]).run(
+            time_[:m], z[:m], "marg", u=gyro[:m])
 
     steps = _interleaved_medians({"api": api_steps, "indexed": indexed_steps, "python": lambda: api_steps(python)},
                                  args.repeats)
@@ -124,8 +126,8 @@ def time_form(compiled, recording, form: str, args) -> dict:
 def time_mekf(compiled, recording, args) -> dict:
     """µs per sample of the generated MARG MEKF: bound C step, Filter.step, whole-trial run."""
     n_step = min(args.step_samples, len(recording))
-    filt = ekf.make_filter(compiled, recording)
-    z, mag, mask = ekf.measurements(recording), recording.mag, ekf.masks(recording)
+    filt = mekf.make_filter(compiled, recording)
+    z, mag, mask = mekf.measurements(recording), recording.mag, mekf.masks(recording)
     x0, P0 = filt.x.copy(), filt.P.copy()
     filt.step(0.0, recording.dt[1], z[1], "marg", q=mag[1], mask=mask[1], u=recording.gyro[1])
     bound = filt.kernel_call("step", "marg")
@@ -134,7 +136,7 @@ def time_mekf(compiled, recording, args) -> dict:
         for _ in range(n_step):
             bound()
 
-    python = ekf.make_filter(compiled, recording)
+    python = mekf.make_filter(compiled, recording)
     python.fast_path = False
 
     time, dt, gyro = recording.time, recording.dt, recording.gyro
@@ -167,7 +169,7 @@ def _per_step(steps: dict[str, float], calls: int) -> dict[str, float]:
 def accuracy(compiled, recording, form: str) -> dict:
     rows = {}
     for beta in [BETA_MADGWICK] + SWEEP_BETAS.tolist():
-        run = run_recording(MargFilter(compiled, form, "marg", beta=beta), recording)
+        run = run_recording(compiled, make_filter(compiled, form, beta=beta), recording)
         rows[float(beta)] = broad_errors(run.q, recording)
     best = min(rows, key=lambda b: rows[b]["total"])          # over the sweep grid and 0.041
     return {"beta_0.041": rows[BETA_MADGWICK], "best_beta": float(best), "best": rows[float(best)]}
@@ -184,15 +186,15 @@ def run(args) -> int:
     first = load_recording(trials[0])
     for form in FORMS:
         result["timing_us_per_sample"][form] = time_form(compiled, first, form, args)
-    mekf = load("marg_ekf", backend="compiled")
-    result["timing_us_per_sample"]["mekf"] = time_mekf(mekf, first, args)
+    mekf_model = load("marg_mekf", backend="compiled")
+    result["timing_us_per_sample"]["mekf"] = time_mekf(mekf_model, first, args)
     if getattr(args, "instructions", False):
-        result["mekf_instructions_per_sample"] = count_instructions(build_model("marg_ekf").directory, first)
+        result["mekf_instructions_per_sample"] = count_instructions(build_model("marg_mekf").directory, first)
     result["mekf_rmse_deg"] = {}
     for path in trials:
         recording = first if path == trials[0] else load_recording(path)
         result["rmse_deg"][path.stem] = {form: accuracy(compiled, recording, form) for form in FORMS}
-        result["mekf_rmse_deg"][path.stem] = broad_errors(ekf.run_recording(mekf, recording).q, recording, frame="enu")
+        result["mekf_rmse_deg"][path.stem] = broad_errors(mekf.run_recording(mekf_model, recording).q, recording, frame="enu")
     emit(result, args.out, args.json, _print_tables)
     return 0
 
@@ -223,5 +225,5 @@ def _print_tables(result: dict) -> None:
             print(f"{trial:36} {form:6} beta=0.041: {a['total']:5.2f}/{a['heading']:5.2f}/{a['inclination']:5.2f}"
                   f"   best beta={r['best_beta']:<8g}: {b['total']:5.2f}/{b['heading']:5.2f}/{b['inclination']:5.2f}")
         m = result["mekf_rmse_deg"][trial]
-        print(f"{trial:36} mekf   (models/marg_ekf.py, one parameter set): "
+        print(f"{trial:36} mekf   (models/marg_mekf.py, one parameter set): "
               f"{m['total']:5.2f}/{m['heading']:5.2f}/{m['inclination']:5.2f}")

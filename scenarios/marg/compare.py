@@ -5,7 +5,7 @@
 
 For every β: the Euler angles (5) of the estimate vs time (with the optical reference when the
 recording has one; BROAD trials do, the x-io CSV does not), the BROAD error metric (total,
-heading, inclination RMSE over movement phases, deg; ``scenarios/marg/filter.py``), and two measures of
+heading, inclination RMSE over movement phases, deg; ``scenarios/marg/broad_metric.py``), and two measures of
 the paper's claim that a larger β brings high-frequency oscillation:
 
 - ``hf_rms_deg``: RMS of the Euler angles' content above ``--hf-cutoff`` Hz (default 5 Hz; body
@@ -20,7 +20,7 @@ the paper's claim that a larger β brings high-frequency oscillation:
 **Over a folder of BROAD trials** (``--data DIR``, ``.hdf5`` or ``.mat`` files): one table, per
 trial, the total / heading / inclination RMSE of Madgwick's filter at β = 0.041, at its best β
 (the sweep grid plus 0.041, chosen per trial: an oracle), and of the generated multiplicative
-EKF of ``models/marg_ekf.py`` (one parameter set for every trial); ``summary.json`` holds the
+EKF of ``models/marg_mekf.py`` (one parameter set for every trial); ``summary.json`` holds the
 rows and ``mean_total_rmse_deg`` (filter name -> mean total RMSE over the trials):
 
     symkf compare marg --data ../shared/data/broad --out results/marg
@@ -39,10 +39,10 @@ import numpy as np
 
 from symkf.models.marg import ALPHA_DEFAULT, BETA_MADGWICK
 from symkf.runtime import load
-from symkf.scenarios.marg.filter import MargFilter
-from symkf.scenarios.marg import ekf
+from symkf.scenarios.marg.filter import make_filter
+from symkf.scenarios.marg import mekf
 from symkf.scenarios.marg.data import Recording, broad_trials, data_dir, load_recording, run_recording
-from symkf.scenarios.marg.metric import broad_errors, error_rotation_vectors, euler_angles, from_enu, to_enu
+from symkf.scenarios.marg.broad_metric import broad_errors, error_rotation_vectors, euler_angles, from_enu, to_enu
 
 DEFAULT_DATA = data_dir() / "broad" / "01_undisturbed_slow_rotation_A.mat"
 SWEEP_BETAS = np.round(np.logspace(-3, 0, 19), 5)
@@ -124,15 +124,15 @@ def _still(recording: Recording) -> np.ndarray | None:
 
 # ---------------------------------------------------------------------- one beta
 def run_beta(compiled, recording: Recording, beta: float, args) -> tuple[dict, np.ndarray]:
-    filt = MargFilter(compiled, args.form, args.mode, beta=beta, alpha=args.alpha)
-    result = run_recording(filt, recording)
-    angles = euler_angles(result.q)
+    filt = make_filter(compiled, args.form, beta=beta, alpha=args.alpha)
+    result = run_recording(compiled, filt, recording, args.mode)
+    angles = euler_angles(result.x)
     rate = 1 / np.median(recording.dt[1:])
     entry = {"beta": beta, "failed_steps": int(result.failed_steps.size),
              "oscillation": oscillation(angles, rate, args.hf_cutoff, _still(recording))}
     if recording.reference is not None:
-        entry["broad_rmse_deg"] = broad_errors(result.q, recording)
-        error = np.degrees(error_rotation_vectors(to_enu(result.q), recording.reference))
+        entry["broad_rmse_deg"] = broad_errors(result.x, recording)
+        error = np.degrees(error_rotation_vectors(to_enu(result.x), recording.reference))
         error_hf = high_frequency_rms(error, rate, args.hf_cutoff)
         entry["oscillation"]["error_hf_rms_deg"] = float(np.linalg.norm(error_hf))
     return entry, angles
@@ -289,18 +289,18 @@ def _print_table(summary: dict) -> None:
 FILTERS = ("madgwick_0.041", "madgwick_best", "mekf")
 
 
-def trial_row(madgwick, mekf, recording: Recording, args) -> dict:
+def trial_row(madgwick, mekf_model, recording: Recording, args) -> dict:
     """One trial: Madgwick at β = 0.041, at its best β of the grid, and the generated MEKF."""
     betas = sorted(set(SWEEP_BETAS.tolist()) | {BETA_MADGWICK})
-    errors = {beta: broad_errors(run_recording(MargFilter(madgwick, args.form, "marg", beta=beta, alpha=args.alpha),
-                                               recording).q, recording) for beta in betas}
+    errors = {beta: broad_errors(run_recording(madgwick, make_filter(madgwick, args.form, beta=beta, alpha=args.alpha),
+                                               recording).x, recording) for beta in betas}
     best = min(betas, key=lambda beta: errors[beta]["total"])
-    result = ekf.run_recording(mekf, recording)
+    result = mekf.run_recording(mekf_model, recording)
     return {"trial": recording.name, "samples": len(recording), "best_beta": best,
             "madgwick_0.041": errors[BETA_MADGWICK], "madgwick_best": errors[best],
             "mekf": broad_errors(result.q, recording, frame="enu"),
             "mekf_failed_steps": int(result.failed_steps.size), "mekf_gated_steps": result.gated_steps,
-            "mekf_heading_used_fraction": float(ekf.masks(recording)[:, 3].mean())}
+            "mekf_heading_used_fraction": float(mekf.masks(recording)[:, 3].mean())}
 
 
 def run_trials(args) -> int:
@@ -314,11 +314,11 @@ def run_trials(args) -> int:
     if missing:
         print(f"symkf compare marg: {missing} have no optical reference")
         return 1
-    madgwick, mekf = load("marg"), load("marg_ekf")
+    madgwick, mekf_model = load("marg"), load("marg_mekf")
     rows = []
     for recording in recordings:
         try:
-            rows.append(trial_row(madgwick, mekf, recording, args))
+            rows.append(trial_row(madgwick, mekf_model, recording, args))
         except ValueError as exc:          # e.g. NaN IMU samples, or no movement phase to score
             detail = str(exc).removeprefix(f"{recording.name}: ")
             print(f"symkf compare marg: trial {recording.name}: {detail}")
@@ -327,7 +327,7 @@ def run_trials(args) -> int:
                "mean_total_rmse_deg": {f: float(np.mean([r[f]["total"] for r in rows])) for f in FILTERS},
                "metric": "BROAD RMSE over movement phases, deg (../shared/data/README.md)",
                "note": "madgwick_best is an oracle: its beta is chosen per trial against the reference; "
-                       "mekf uses one parameter set (models/marg_ekf.py, scenarios/marg/ekf.py) for every trial"}
+                       "mekf uses one parameter set (models/marg_mekf.py, scenarios/marg/mekf.py) for every trial"}
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "summary.json").write_text(json.dumps(summary, indent=1))
     print_trials_table(summary)
@@ -336,7 +336,7 @@ def run_trials(args) -> int:
 
 def print_trials_table(summary: dict) -> None:
     print(f"BROAD RMSE [deg] total / heading / inclination, {len(summary['rows'])} trials from {summary['data']}")
-    print(f"{'trial':<36} {'Madgwick beta=0.041':>21} {'Madgwick best beta':>27} {'MEKF (marg_ekf)':>21}")
+    print(f"{'trial':<36} {'Madgwick beta=0.041':>21} {'Madgwick best beta':>27} {'MEKF (marg_mekf)':>21}")
     for r in summary["rows"]:
         cells = [" / ".join(f"{r[f][k]:5.2f}" for k in ("total", "heading", "inclination")) for f in FILTERS]
         print(f"{r['trial']:<36} {cells[0]:>21} {cells[1]:>18} (b={r['best_beta']:<6g}) {cells[2]:>21}")

@@ -2,7 +2,7 @@
 
 - :func:`load_recording`: BROAD ``.mat`` or ``.hdf5`` trials (Laidig et al. 2021, CC BY 4.0; optical reference)
   and the x-io Fusion CSV (MIT; no reference), as :class:`Recording`.
-- :func:`run_recording`: a :class:`~symkf.scenarios.marg.filter.MargFilter` over a whole recording.
+- :func:`run_recording`: a gradient-descent filter (``scenarios/marg/filter.py``) over a whole recording.
 
 Quaternions are scalar-last ``[x, y, z, w]`` everywhere in the project; BROAD's scalar-first
 ``opt_quat`` is converted on loading.
@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from symkf.runtime.filters import RunResult
+from symkf.scenarios.marg.filter import initial_orientation, samples
 
 
 def data_dir() -> Path:
@@ -149,9 +150,10 @@ def load_recording(path: str | Path) -> Recording:
     raise ValueError(f"{path}: expected a BROAD .mat / .hdf5 or an x-io .csv file")
 
 
-def run_recording(filt, recording: Recording, initialize: bool = True) -> RunResult:
-    """Initialise ``filt`` (a MargFilter) from the first sample (if asked) and filter the whole recording."""
-    mag = recording.mag if filt.mode == "marg" else None
+def run_recording(compiled, filt, recording: Recording, measurement: str = "marg", initialize: bool = True) -> RunResult:
+    """Initialise ``filt`` (a gradient-descent Filter of ``compiled``, ``scenarios/marg/filter.py``)
+    from the first sample (if asked) and filter the whole recording."""
+    z = samples(recording.acc, recording.mag, measurement)
     if initialize:
-        filt.initialize(recording.acc[0], None if mag is None else mag[0])
-    return filt.run(recording.dt, recording.gyro, recording.acc, mag)
+        filt.x = initial_orientation(compiled, z[0], measurement)
+    return filt.run(recording.time, z, measurement, u=recording.gyro)

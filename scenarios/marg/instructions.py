@@ -4,10 +4,10 @@ time on a shared machine): ``symkf bench marg --instructions``.
 A small C program (compiled against the bundle's library with its flags) feeds a BROAD trial's
 samples to one part of the filter's C API:
 
-- ``predict``: ``marg_ekf_mekf_predict`` per sample (its wrapper's checks included);
-- ``update``: ``marg_ekf_mekf_update_marg`` per sample (the same);
-- ``step``: ``marg_ekf_mekf_step_marg``, predict + update in one call;
-- ``run``: ``marg_ekf_mekf_run_marg_run`` over the samples (the loop in C; it iterates the step
+- ``predict``: ``marg_mekf_mekf_predict`` per sample (its wrapper's checks included);
+- ``update``: ``marg_mekf_mekf_update_marg`` per sample (the same);
+- ``step``: ``marg_mekf_mekf_step_marg``, predict + update in one call;
+- ``run``: ``marg_mekf_mekf_run_marg_run`` over the samples (the loop in C; it iterates the step
   without the diagnostics y, S: ``FilterSpec.run``, and after the first successful step that
   step without the checks its own state cannot fail: ``Kernel.trusted``).
 
@@ -15,7 +15,7 @@ Each part is counted over 3000 and over 1000 samples; the difference / 2000 is i
 sample without start-up. Those samples are the trial's initial rest (every component used but the
 heading at times); ``run_trial`` counts the run from sample 1000 to the end of the trial, with
 the mask patterns of the whole recording (the kernels specialised per mask pattern show there). For ``run`` the kernels' own share (callgrind's inclusive counts of
-``marg_ekf_k_mekf_run_marg`` and of its trusted partner and variants, which the loop iterates once
+``marg_mekf_k_mekf_run_marg`` and of its trusted partner and variants, which the loop iterates once
 a step has succeeded) is reported too: the rest is the loop's checks and copies.
 """
 from __future__ import annotations
@@ -26,14 +26,14 @@ from pathlib import Path
 
 import numpy as np
 
-from symkf.models import marg_ekf
+from symkf.models import marg_mekf
 from symkf.scenarios import callgrind
-from . import ekf
+from . import mekf
 
 PARTS = ("predict", "update", "step", "run")
 #: The kernels a run iterates (C names start with it): the checked one until a step succeeds, then its
 #: trusted partner or one of that partner's variants (per mask pattern, gate off).
-RUN_KERNELS = "marg_ekf_k_mekf_run_marg"
+RUN_KERNELS = "marg_mekf_k_mekf_run_marg"
 SAMPLES = (1000, 3000)
 #: The C program that feeds the samples to one part of the API (beside this file).
 C_DRIVER = "mekf_driver.c"
@@ -67,15 +67,15 @@ def count_instructions(directory: Path, recording, whole_trial: bool = True) -> 
 
 def _driver_input(recording, count: int) -> bytes:
     n = min(count, len(recording))
-    x0 = np.r_[ekf.initial_orientation(recording.acc[0], recording.mag[0]), np.zeros(3)]
-    P0 = np.diag(ekf.INITIAL_SIGMA ** 2)
-    sigma = [marg_ekf.ACC_DIRECTION_SIGMA] * 3 + [marg_ekf.HEADING_SIGMA] + [marg_ekf.REST_GYRO_SIGMA] * 3
-    head = np.concatenate([x0, P0.ravel("F"), marg_ekf.process_noise_psd().ravel("F"),
+    x0 = np.r_[mekf.initial_orientation(recording.acc[0], recording.mag[0]), np.zeros(3)]
+    P0 = np.diag(mekf.INITIAL_SIGMA ** 2)
+    sigma = [marg_mekf.ACC_DIRECTION_SIGMA] * 3 + [marg_mekf.HEADING_SIGMA] + [marg_mekf.REST_GYRO_SIGMA] * 3
+    head = np.concatenate([x0, P0.ravel("F"), marg_mekf.process_noise_psd().ravel("F"),
                            np.diag(np.square(sigma)).ravel("F"), np.zeros(7)])
     times = recording.time[:n]
     t, dt = np.concatenate([times[:1], times[:-1]]), np.diff(times, prepend=times[:1])
-    mask = ekf.masks(recording)[:n]
-    z = np.where(mask > 0.5, ekf.measurements(recording)[:n], 0.0)
+    mask = mekf.masks(recording)[:n]
+    z = np.where(mask > 0.5, mekf.measurements(recording)[:n], 0.0)
     rows = np.column_stack([t, dt, recording.gyro[:n], recording.mag[:n], z, mask])
     return np.concatenate([head, rows.ravel()]).astype("<f8").tobytes()
 

@@ -15,7 +15,7 @@ double build.
 - attitude (paper 000, scenario I): ``--attitude-runs`` runs of ``--attitude-duration`` s, MEKF
   and UKF (:func:`symkf.scenarios.attitude.compare.one_run`): attitude RMS over the second half.
 - marg (paper 001, BROAD trials in ``$SYMKF_DATA_DIR/broad``): the generated MEKF of
-  ``models/marg_ekf.py`` and the gradient-descent filter (simplified form, beta = 0.041): mean
+  ``models/marg_mekf.py`` and the gradient-descent filter (simplified form, beta = 0.041): mean
   total RMSE over the trials.
 - geo (paper 003, Table 7 case 3 with bias and noise, and case 4 with gyros A and C failed): the
   closed loop of :mod:`symkf.scenarios.geo.closed_loop` for ``--geo-duration`` s, truth, sensors
@@ -94,24 +94,24 @@ def marg() -> dict:
     """Mean total RMSE (deg) over the BROAD trials: MEKF and gradient descent (simple, beta 0.041)."""
     from symkf.models.marg import BETA_MADGWICK
     from symkf.runtime import load
-    from symkf.scenarios.marg.filter import MargFilter
-    from symkf.scenarios.marg import ekf
+    from symkf.scenarios.marg.filter import make_filter
+    from symkf.scenarios.marg import mekf as ekf
     from symkf.scenarios.marg.data import broad_trials, data_dir, load_recording, run_recording
-    from symkf.scenarios.marg.metric import broad_errors
+    from symkf.scenarios.marg.broad_metric import broad_errors
     try:
         recordings = [load_recording(path) for path in broad_trials(data_dir() / "broad")]
     except (OSError, ValueError) as exc:
         return {"skipped": str(exc)}
     out = {}
     for precision in PRECISIONS:
-        mekf, gd = load("marg_ekf", **codegen(precision)), load("marg", **codegen(precision))
+        mekf, gd = load("marg_mekf", **codegen(precision)), load("marg", **codegen(precision))
         rows = {"mekf": [], "gd_simple": []}
         refused = {"mekf": 0, "gd_simple": 0}
         for recording in recordings:
             run = ekf.run_recording(mekf, recording)
             rows["mekf"].append(broad_errors(run.q, recording, frame="enu")["total"])
             refused["mekf"] += run.failed_steps.size
-            run = run_recording(MargFilter(gd, "simple", "marg", beta=BETA_MADGWICK), recording)
+            run = run_recording(gd, make_filter(gd, "simple", beta=BETA_MADGWICK), recording)
             rows["gd_simple"].append(broad_errors(run.q, recording)["total"])
             refused["gd_simple"] += run.failed_steps.size
         for family, values in rows.items():

@@ -87,8 +87,8 @@ def _declared(header: str, model: str) -> set[str]:
 
 
 @pytest.mark.parametrize("model, overrides", [("launcher", {}), ("attitude", {}), ("geo_satellite", {}), ("marg", {}),
-                                              ("marg_ekf", {}), ("launcher", {"precision": "float"})],
-                         ids=["launcher", "attitude", "geo_satellite", "marg", "marg_ekf", "launcher-float"])
+                                              ("marg_mekf", {}), ("launcher", {"precision": "float"})],
+                         ids=["launcher", "attitude", "geo_satellite", "marg", "marg_mekf", "launcher-float"])
 def test_only_the_documented_api_is_exported_and_everything_is_ascii(model, overrides):
     from symkf.runtime import load
     directory = load(model, backend="compiled", **overrides).backend.library_path.parent
@@ -136,7 +136,7 @@ def test_stack_figures_in_the_header_are_the_compilers(bundle):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("model", ["attitude", "geo_satellite", "marg", "marg_ekf"])
+@pytest.mark.parametrize("model", ["attitude", "geo_satellite", "marg", "marg_mekf"])
 def test_stack_figures_of_every_bundle_are_the_compilers(model, tmp_path):
     """The same check for the other bundles (slow: `make stack` recompiles every unit)."""
     result = build_model(model)

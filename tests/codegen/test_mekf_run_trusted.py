@@ -17,7 +17,7 @@ KERNEL = "mekf_run_marg"
 @pytest.fixture(scope="module")
 def compiled():
     from symkf.runtime import load
-    return load("marg_ekf", backend="compiled")
+    return load("marg_mekf", backend="compiled")
 
 
 @pytest.fixture(scope="module")
@@ -37,8 +37,8 @@ def recording():
 
 def inputs(compiled, recording, bad: str) -> dict[str, np.ndarray]:
     """Every input of ``mekf_run_marg`` (per-step ones with one row per step); ``bad`` spoils one."""
-    from symkf.models import marg_ekf
-    from symkf.scenarios.marg import ekf
+    from symkf.models import marg_mekf as marg_ekf
+    from symkf.scenarios.marg import mekf as ekf
     filt = ekf.make_filter(compiled, recording)
     mask = ekf.masks(recording)
     patterns = {tuple(np.flatnonzero(row == 0)) for row in mask}
@@ -65,7 +65,7 @@ def inputs(compiled, recording, bad: str) -> dict[str, np.ndarray]:
 @pytest.fixture(scope="module")
 def kernels():
     from symkf.codegen import generate
-    return {k.name: k for k in generate("marg_ekf").kernels}
+    return {k.name: k for k in generate("marg_mekf").kernels}
 
 
 def test_the_run_kernel_names_its_trusted_partner_and_its_variants(kernels):
@@ -146,9 +146,9 @@ def test_a_variant_pattern_outside_the_measurement_is_refused():
     from symkf.codegen.spec import ConfigError
     from symkf.codegen.generation import default_config
     from symkf.models import get_model
-    config = default_config(get_model("marg_ekf")).with_overrides(manifold_run_variants=((7,),))
+    config = default_config(get_model("marg_mekf")).with_overrides(manifold_run_variants=((7,),))
     with pytest.raises(ConfigError, match="manifold_run_variants"):
-        generate("marg_ekf", config)
+        generate("marg_mekf", config)
 
 
 @pytest.mark.parametrize("mask", [[1, 1, 1, 0, 1, 1, 1], [1, 1, 1, 0, 0, 0, 0], [1] * 7])
@@ -158,9 +158,9 @@ def test_a_masked_component_with_a_singular_jacobian_is_ignored_on_both_backends
     heading folded away) as on the CasADi VM (the general kernel): both accept the step with the
     same x, P. Used, both refuse it (SYMKF_ERR_NOT_PD). Before mekf.masked_rows the VM
     refused the masked case (0 * Inf in H)."""
-    from symkf.models import marg_ekf
+    from symkf.models import marg_mekf as marg_ekf
     from symkf.runtime import SymkfError, load
-    vm = load("marg_ekf", backend="casadi-vm")
+    vm = load("marg_mekf", backend="casadi-vm")
     x0, P0 = np.r_[0, 0, 0, 1.0, 0, 0, 0], np.diag([0.01] * 3 + [1e-4] * 3)
     results = []
     for backend in (compiled, vm):

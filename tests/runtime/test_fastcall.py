@@ -244,10 +244,10 @@ def _still_then_turning(n: int = 700, rate: float = 285.714) -> Recording:
 
 
 def test_the_marg_mekf_common_call_takes_the_fast_path():
-    """models/marg_ekf.py as scenarios/marg/ekf.py feeds it: 7 components (acc direction, heading,
+    """models/marg_mekf.py as scenarios/marg/mekf.py feeds it: 7 components (acc direction, heading,
     gyro at rest) with per-sample masks, the magnetometer as q, the gyro as u, rows of column-major
     records. Every call takes the fast path, with the Python path's numbers bit for bit."""
-    compiled = load("marg_ekf", backend="compiled")
+    compiled = load("marg_mekf", backend="compiled")
     recording = _still_then_turning()
     z, mask = np.asfortranarray(ekf.measurements(recording)), np.asfortranarray(ekf.masks(recording))
     z[mask == 0] = np.nan                           # masked out: never read, taken all the same

@@ -71,7 +71,7 @@ def test_one_step_equals_numpy_reference(request, family, side):
 
 
 def test_sequential_update_equals_the_batch_reference():
-    """manifold_update="sequential" (one scalar update per component, models/marg_ekf.py's choice)
+    """manifold_update="sequential" (one scalar update per component, models/marg_mekf.py's choice)
     gives the batch NumPy reference's update to round-off, masked components included; a used
     correlation in R is refused (SYMKF_ERR_ARGS), state unchanged."""
     spinner = load(SPINNER, backend="compiled", manifold_update="sequential")
@@ -123,10 +123,10 @@ def test_series_transition_needs_the_rk4_step():
 
 
 def test_marg_mekf_numpy_reference_step_and_run_agree():
-    """models/marg_ekf.py (series transition, sequential update) on a synthetic recording as
-    scenarios/marg/ekf.py feeds it: NumPy reference (batch update, chain-rule A) == compiled step
+    """models/marg_mekf.py (series transition, sequential update) on a synthetic recording as
+    scenarios/marg/mekf.py feeds it: NumPy reference (batch update, chain-rule A) == compiled step
     == compiled run, heading masked and gyro-at-rest used in parts."""
-    from symkf.scenarios.marg import ekf
+    from symkf.scenarios.marg import mekf as ekf
     from symkf.scenarios.marg.data import Recording
     rng = np.random.default_rng(11)
     n = 800                                           # 1.6 s at rest (the rest rule needs 1.5 s), then turning
@@ -138,10 +138,10 @@ def test_marg_mekf_numpy_reference_step_and_run_agree():
     recording = Recording("synthetic", time, gyro, acc, mag)
     z, mask = ekf.measurements(recording), ekf.masks(recording)
     assert 0 < mask[:, 3].sum() < n and 0 < mask[:, 4].sum() < n
-    compiled = load("marg_ekf", backend="compiled")
+    compiled = load("marg_mekf", backend="compiled")
     run = ekf.run_recording(compiled, recording)
     stepped = ekf.make_filter(compiled, recording)
-    ref = ManifoldReference("marg_ekf", "mekf", stepped.x, stepped.P, stepped.Q)
+    ref = ManifoldReference("marg_mekf", "mekf", stepped.x, stepped.P, stepped.Q)
     assert ref.transition == "series"
     stepped.update(z[0], "marg", q=mag[0], mask=mask[0], u=gyro[0])
     ref.u = gyro[0]

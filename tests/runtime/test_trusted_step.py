@@ -11,7 +11,7 @@ import pytest
 from symkf.codegen.spec import STATUS_GATED
 from symkf.runtime import SymkfError, fastcall, load
 from symkf.scenarios.attitude.filter import attitude_filter
-from symkf.scenarios.marg import ekf
+from symkf.scenarios.marg import mekf as ekf
 from symkf.scenarios.marg.data import Recording
 
 pytestmark = pytest.mark.skipif(fastcall.extension() is None, reason=f"no fast path: {fastcall.unavailable}")
@@ -21,7 +21,7 @@ STEPS = 400
 
 @pytest.fixture(scope="module")
 def compiled():
-    return load("marg_ekf", backend="compiled")
+    return load("marg_mekf", backend="compiled")
 
 
 @pytest.fixture(scope="module")

@@ -80,12 +80,12 @@ VQF_MEAN_DEG = 2.59
 @pytest.mark.skipif(not all((BROAD / f"{name}.mat").exists() for name in TRIALS.values()),
                     reason=f"BROAD trials {sorted(TRIALS.values())} are absent from {BROAD}")
 def test_mekf_one_parameter_set_beats_vqf_mean_and_madgwick_best_beta():
-    """models/marg_ekf.py with scenarios/marg/ekf.py's one parameter set over the three trials:
+    """models/marg_mekf.py with scenarios/marg/mekf.py's one parameter set over the three trials:
     mean total RMSE <= VQF's 2.59 deg and every trial below Madgwick at its (oracle) best beta."""
     from symkf.runtime import load
     from symkf.scenarios.marg import ekf
-    from symkf.scenarios.marg.metric import broad_errors
-    compiled, totals = load("marg_ekf"), {}
+    from symkf.scenarios.marg.broad_metric import broad_errors
+    compiled, totals = load("marg_mekf"), {}
     for key, name in TRIALS.items():
         recording = load_recording(BROAD / f"{name}.mat")
         result = ekf.run_recording(compiled, recording)

@@ -10,7 +10,7 @@ from scipy.spatial.transform import Rotation
 from symkf.runtime import load
 from symkf.scenarios.marg.filter import MargFilter, reference_initial, reference_run
 from symkf.scenarios.marg.data import data_dir, load_recording, run_recording
-from symkf.scenarios.marg.metric import broad_error_angles, broad_errors, error_rotation_vectors, to_enu
+from symkf.scenarios.marg.broad_metric import broad_error_angles, broad_errors, error_rotation_vectors, to_enu
 
 BROAD_TRIAL = data_dir() / "broad" / "01_undisturbed_slow_rotation_A.mat"
 XIO_CSV = data_dir() / "fusion_sensor_data.csv"

@@ -1,4 +1,4 @@
-"""The generated MARG multiplicative EKF (``models/marg_ekf.py``) over a recording.
+"""The generated MARG multiplicative EKF (``models/marg_mekf.py``) over a recording.
 
 Availability masks, decided per sample by rules that need nothing after the sample (so the same
 rules run online):
@@ -29,7 +29,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from symkf.models import marg_ekf
+from symkf.models import marg_mekf
 from symkf.runtime.filters import RunResult
 
 MAG_NORM_TOLERANCE = 0.03
@@ -101,7 +101,7 @@ def make_filter(compiled, recording, gate: float | None = None):
     """The MEKF initialised from the recording's first sample."""
     x0 = np.r_[initial_orientation(recording.acc[0], recording.mag[0]), np.zeros(3)]
     options = {"gate": {"marg": gate}} if gate else {}
-    return compiled.filter("mekf", x0, np.diag(INITIAL_SIGMA**2), marg_ekf.process_noise_psd(), **options)
+    return compiled.filter("mekf", x0, np.diag(INITIAL_SIGMA**2), marg_mekf.process_noise_psd(), **options)
 
 
 def run_recording(compiled, recording, gate: float | None = None) -> RunResult:

@@ -12,7 +12,7 @@ from functools import lru_cache
 import casadi as ca
 import numpy as np
 
-from symkf.codegen.families.gradient_descent import marg_functions
+from symkf.models import marg as paper
 from symkf.models import quaternion as quat
 from .data import Recording
 
@@ -25,7 +25,9 @@ def _mapped(name: str, n: int) -> ca.Function:
     if name == "hamilton":
         p, q = ca.SX.sym("p", 4), ca.SX.sym("q", 4)
         return ca.Function("hamilton", [p, q], [quat.hamilton(p, q)]).map(n)
-    return marg_functions()[name].map(n)
+    q = ca.SX.sym("q", 4)          # name == "euler_angles": eq (5) on q*
+    return ca.Function("marg_sensor_euler_angles", [q], [paper.sensor_euler_angles(q)], ["q"], ["psi_theta_phi"],
+                       {"cse": True}).map(n)
 
 
 def euler_angles(q: np.ndarray) -> np.ndarray:

@@ -17,9 +17,9 @@ generated multiplicative EKF (``codegen/families/mekf.py``).
   5-7: the gyro *at rest*: a sensor that does not rotate measures its bias, ω_m = b (the rest
   detection of VQF: Laidig & Seel, "VQF: Highly accurate IMU orientation estimation with bias
   estimation and magnetic disturbance rejection", Information Fusion 91, 2023; masked while
-  the sensor moves, decided by ``scenarios/marg/ekf.py``).
+  the sensor moves, decided by ``scenarios/marg/mekf.py``).
 - Magnetic disturbances are rejected by masking the heading, decided per sample by
-  ``scenarios/marg/ekf.py`` (|m| or the dip angle off their values at the start of the
+  ``scenarios/marg/mekf.py`` (|m| or the dip angle off their values at the start of the
   recording); the accelerometer is always used, its sigma absorbing accelerations.
 
 The sigmas below are the ONE parameter set used for every trial (no per-trial tuning; tuned on
@@ -49,7 +49,7 @@ def process_noise_psd() -> np.ndarray:
 
 
 def build() -> Model:
-    m = Model("marg_ekf", "MARG orientation (ENU) and gyro bias for the generated multiplicative EKF",
+    m = Model("marg_mekf", "MARG orientation (ENU) and gyro bias for the generated multiplicative EKF",
               paper="BROAD benchmark, Laidig et al., Data 6(7) 2021; MEKF: Lefferts, Markley & Shuster 1982")
     q = m.quaternion_state("q", "orientation of the sensor in the ENU earth frame (v_E = R(q) v_S)")
     b = ca.vertcat(*[m.state(f"b_{a}", "rad/s", f"gyro bias, sensor {a} axis") for a in "xyz"])
