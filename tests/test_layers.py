@@ -1,5 +1,5 @@
 """The rooms' one-way flow, read from the source (every import, module-level and inside functions,
-from the AST; nothing imported, nothing built): models < codegen < runtime < scenarios, a room imports
+from the AST; type-checking-only imports aside; nothing imported, nothing built): models < codegen < runtime < scenarios, a room imports
 only itself and the rooms before it; codegen and runtime never import a paper model; no two modules
 import each other, directly or round a longer cycle."""
 import ast
@@ -36,6 +36,13 @@ def _resolve(module: str, path: Path, node: ast.ImportFrom) -> str:
     return f"{package}.{node.module}" if node.module else package
 
 
+def _type_checking_imports(tree: ast.Module) -> set[int]:
+    """Imports under ``if TYPE_CHECKING:``: read by type checkers only, never executed."""
+    guarded = [node for node in ast.walk(tree) if isinstance(node, ast.If)
+               and (getattr(node.test, "id", None) == "TYPE_CHECKING" or getattr(node.test, "attr", None) == "TYPE_CHECKING")]
+    return {id(inner) for node in guarded for statement in node.body for inner in ast.walk(statement)}
+
+
 @lru_cache(maxsize=None)
 def imports() -> dict[str, tuple[tuple[str, int], ...]]:
     """{module: ((imported symkf module, line), ...)}: ``from pkg import name`` counts as an import
@@ -44,7 +51,11 @@ def imports() -> dict[str, tuple[tuple[str, int], ...]]:
     out = {}
     for module, path in known.items():
         found = []
-        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"), str(path))):
+        tree = ast.parse(path.read_text(encoding="utf-8"), str(path))
+        type_only = _type_checking_imports(tree)
+        for node in ast.walk(tree):
+            if id(node) in type_only:
+                continue
             if isinstance(node, ast.Import):
                 found += [(alias.name, node.lineno) for alias in node.names]
             elif isinstance(node, ast.ImportFrom):
