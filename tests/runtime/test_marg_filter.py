@@ -3,18 +3,20 @@
 The derived gradient Jᵀf is checked against Jacobians written here by hand from f (18) and (22)
 (the printed (15), (19), (23) have typesetting errors, so they are not used) and against central
 finite differences of ½‖f‖²; the filter paths (compiled step, compiled run, NumPy reference)
-are compared on synthetic samples, including zero-norm ones.
+are compared on synthetic samples, including zero-norm and masked ones.
 """
 import casadi as ca
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from symkf.codegen.families.gradient_descent import marg_functions
+from symkf.codegen.families.gradient_descent import check_model, model_functions
+from symkf.models import get_model
 from symkf.models import marg as paper
 from symkf.models import quaternion as quat
 from symkf.runtime import load
-from symkf.scenarios.marg.filter import MargFilter, reference_run, reference_step
+from symkf.runtime.reference.gradient_descent import ReferenceGradientDescent
+from symkf.scenarios.marg.filter import initial_orientation, make_filter, samples
 
 RNG = np.random.default_rng(1)
 
@@ -22,6 +24,18 @@ RNG = np.random.default_rng(1)
 @pytest.fixture(scope="module")
 def compiled():
     return load("marg", backend="compiled")
+
+
+@pytest.fixture(scope="module")
+def fns():
+    return model_functions(get_model("marg"))
+
+
+def call(function, *args) -> np.ndarray:
+    return np.asarray(function(*args)).ravel()
+
+
+U0, P0 = np.zeros(3), np.array([0.1, 2.0])      # the gradients do not depend on u or p
 
 
 def random_unit(n: int = 4) -> np.ndarray:
@@ -109,8 +123,7 @@ def to_first(v):
 
 
 @pytest.mark.parametrize("trial", range(5))
-def test_derived_gradients_match_closed_forms(trial):
-    fns = marg_functions()
+def test_derived_gradients_match_closed_forms(fns, trial):
     q = RNG.normal(size=4)       # not unit on purpose: the identity Jᵀf holds for any q
     a, m = random_unit(3), random_unit(3)
     b = np.array([RNG.uniform(0.2, 1), 0.0, RNG.uniform(-1, 1)])
@@ -119,44 +132,63 @@ def test_derived_gradients_match_closed_forms(trial):
     f_b = evaluate(paper.objective_earth_field, q, b, m)
     grad_g = jacobian_gravity_closed_form(q1, q2, q3, q4).T @ f_g
     grad_b = jacobian_earth_field_closed_form(q1, q2, q3, q4, b[0], b[2]).T @ f_b
-    np.testing.assert_allclose(to_first(np.asarray(fns["gradient_gravity"](q, a)).ravel()), grad_g,
+    b_params = b[[0, 2]]          # measurement 'marg''s parameters [bx, bz]
+    for name, args in (("gradient_imu", (np.zeros(0), a)), ("gradient_marg_gravity", (b_params, a))):
+        np.testing.assert_allclose(to_first(call(fns[name], q, U0, P0, *args)), grad_g, rtol=1e-13, atol=1e-13)
+    np.testing.assert_allclose(to_first(call(fns["gradient_marg_earth_field"], q, U0, P0, b_params, m)), grad_b,
                                rtol=1e-13, atol=1e-13)
-    np.testing.assert_allclose(to_first(np.asarray(fns["gradient_earth_field"](q, b, m)).ravel()), grad_b,
-                               rtol=1e-13, atol=1e-13)
-    np.testing.assert_allclose(to_first(np.asarray(fns["gradient_stacked"](q, a, b, m)).ravel()),
+    np.testing.assert_allclose(to_first(call(fns["gradient_marg"], q, U0, P0, b_params, np.r_[a, m])),
                                grad_g + grad_b, rtol=1e-13, atol=1e-13)
 
 
-def test_derived_gradient_matches_finite_differences():
+def test_derived_gradient_matches_finite_differences(fns):
     """Jᵀf = ∇(½‖f‖²): central differences of the stacked objective (24)."""
-    fns = marg_functions()
     q, a, m = random_unit(), random_unit(3), random_unit(3)
     b = np.array([0.5, 0.0, -0.85])
     half_sq = lambda qq: 0.5 * np.sum(evaluate(paper.objective_stacked, qq, a, b, m) ** 2)  # noqa: E731
     h = 1e-6
     fd = np.array([(half_sq(q + h * e) - half_sq(q - h * e)) / (2 * h) for e in np.eye(4)])
-    np.testing.assert_allclose(np.asarray(fns["gradient_stacked"](q, a, b, m)).ravel(), fd, atol=1e-8)
+    np.testing.assert_allclose(call(fns["gradient_marg"], q, U0, P0, b[[0, 2]], np.r_[a, m]), fd, atol=1e-8)
 
 
-def test_earth_field_reference_recovers_true_field():
+def test_model_measurements_are_the_objectives_directions():
+    """f = h(q) - z: the model's measurements are (18) and (24) without the samples."""
+    model, q, a, m = get_model("marg"), random_unit(), random_unit(3), random_unit(3)
+    b = np.array([0.5, 0.0, -0.85])
+    h = {name: ca.Function("h", [model.x, meas.q], [meas.h]) for name, meas in model.measurements.items()}
+    np.testing.assert_allclose(call(h["imu"], q, np.zeros(0)) - a, evaluate(paper.objective_gravity, q, a), atol=1e-15)
+    np.testing.assert_allclose(call(h["marg"], q, b[[0, 2]]) - np.r_[a, m],
+                               evaluate(paper.objective_stacked, q, a, b, m), atol=1e-15)
+
+
+def test_family_refuses_a_model_without_what_it_needs():
+    model = get_model("marg")
+    del model.functions["earth_field_reference"]
+    with pytest.raises(ValueError, match=r"Model.functions\['earth_field_reference'\]"):
+        check_model(model)
+
+
+def test_earth_field_reference_recovers_true_field(fns):
     q = random_unit()
     inclination = np.radians(66.0)
     b_true = np.array([np.cos(inclination), 0.0, -np.sin(inclination)])
     m = Rotation.from_quat(q).inv().apply(b_true)          # what the magnetometer sees
     np.testing.assert_allclose(evaluate(paper.earth_field_reference, q, m), b_true, atol=1e-14)
+    np.testing.assert_allclose(call(fns["earth_field_reference"], q, m), b_true[[0, 2]], atol=1e-14)
     # with a wrong heading the reference is still horizontal-north + vertical, same inclination
     q_wrong = (Rotation.from_euler("z", 40, degrees=True) * Rotation.from_quat(q)).as_quat()
     np.testing.assert_allclose(evaluate(paper.earth_field_reference, q_wrong, m), b_true, atol=1e-14)
 
 
-def test_initial_orientation_triad():
+def test_initial_orientation_triad(fns, compiled):
     for _ in range(20):
         q = random_unit()
         R = Rotation.from_quat(q)
         a = 9.81 * R.inv().apply([0, 0, 1.0])
         m = 45 * R.inv().apply([np.cos(1.1), 0, -np.sin(1.1)])
-        q0 = np.asarray(marg_functions()["initial_orientation"](a, m)).ravel()
+        q0 = call(fns["initial_orientation"], a, m)
         assert min(np.abs(q0 - q).max(), np.abs(q0 + q).max()) < 1e-12
+        np.testing.assert_allclose(initial_orientation(compiled, np.r_[a, m]), q0, atol=1e-15)
 
 
 # ---------------------------------------------------------------------- compiled filter
@@ -173,7 +205,7 @@ def synthetic(n=400, rate=100.0, seed=0):
     acc = np.array([r.inv().apply([0, 0, 9.81]) for r in truth]) + 0.05 * rng.normal(size=(n, 3))
     mag = np.array([r.inv().apply(40 * field) for r in truth]) + 0.3 * rng.normal(size=(n, 3))
     gyro = omega + 0.01 * rng.normal(size=(n, 3)) + np.array([0.02, -0.01, 0.015])
-    return dt, gyro, acc, mag, np.array([r.as_quat() for r in truth])
+    return np.cumsum(dt), gyro, acc, mag, np.array([r.as_quat() for r in truth])
 
 
 def angle_error_deg(q, truth):
@@ -183,64 +215,79 @@ def angle_error_deg(q, truth):
 @pytest.mark.parametrize("form", ["simple", "full"])
 @pytest.mark.parametrize("mode", ["imu", "marg"])
 def test_three_paths_agree_on_synthetic_data(compiled, form, mode):
-    dt, gyro, acc, mag, _ = synthetic()
+    times, gyro, acc, mag, _ = synthetic()
     acc[50] = 0.0                  # free fall sample
-    mag[60:70] = 0.0               # missing magnetometer
+    mag[60:70] = 0.0               # missing magnetometer (zero-norm)
     acc[80], mag[80] = 0.0, 0.0
+    z = samples(acc, mag, mode)
+    mask = np.ones_like(z)
+    mask[100:110, 3:] = 0.0        # missing magnetometer (masked; NaN there is never read)
+    mask[120, :3] = 0.0
+    z[mask < 0.5] = np.nan
     q0 = Rotation.from_euler("z", 5, degrees=True).as_quat()
-    mag_in = mag if mode == "marg" else None
-    run = MargFilter(compiled, form, mode, beta=0.2, q0=q0).run(dt, gyro, acc, mag_in)
-    stepper = MargFilter(compiled, form, mode, beta=0.2, q0=q0)
-    first = stepper.run(dt[:1], gyro[:1], acc[:1], None if mag_in is None else mag[:1]).q  # dt[0] = 0: step() needs > 0
-    steps = np.array([first[0]] + [stepper.step(dt[k], gyro[k], acc[k], None if mag_in is None else mag[k]).copy()
-                                   for k in range(1, dt.size)])
-    reference = reference_run(form, mode, q0, dt, gyro, acc, mag, beta=0.2)
+    run = make_filter(compiled, form, beta=0.2, q0=q0).run(times, z, mode, u=gyro, mask=mask)
+    stepper = make_filter(compiled, form, beta=0.2, q0=q0)
+    first = stepper.run(times[:1], z[:1], mode, u=gyro[:1], mask=mask[:1]).x    # dt[0] = 0: step() needs > 0
+    for k in range(1, times.size):
+        stepper.step(times[k - 1], times[k] - times[k - 1], z[k], mode, u=gyro[k], mask=mask[k])
+        first = np.vstack([first, stepper.x])
+    reference = ReferenceGradientDescent("marg", f"gd_{form}", q0, p=[0.2, paper.ALPHA_DEFAULT]).run(
+        times, z, mode, u=gyro, mask=mask)
     assert not run.failed_steps.size
-    np.testing.assert_allclose(run.q, steps, atol=1e-15, rtol=0)
-    np.testing.assert_allclose(run.q, reference, atol=1e-13, rtol=0)
-    np.testing.assert_allclose(np.linalg.norm(run.q, axis=1), 1.0, atol=1e-14)
+    np.testing.assert_allclose(run.x, first, atol=1e-15, rtol=0)
+    np.testing.assert_allclose(run.x, reference, atol=1e-13, rtol=0)
+    np.testing.assert_allclose(np.linalg.norm(run.x, axis=1), 1.0, atol=1e-14)
 
 
 @pytest.mark.parametrize("form", ["simple", "full"])
 def test_converges_from_a_wrong_start(compiled, form):
-    dt, gyro, acc, mag, truth = synthetic(n=3000, seed=2)
+    times, gyro, acc, mag, truth = synthetic(n=3000, seed=2)
     q0 = (Rotation.from_euler("ZYX", [60, -30, 40], degrees=True) * Rotation.from_quat(truth[0])).as_quat()
-    filt = MargFilter(compiled, form, "marg", beta=0.5, alpha=50.0, q0=q0)
-    run = filt.run(dt, gyro, acc, mag)
-    error = angle_error_deg(run.q, truth)
+    filt = make_filter(compiled, form, beta=0.5, alpha=50.0, q0=q0)
+    run = filt.run(times, samples(acc, mag), "marg", u=gyro)
+    error = angle_error_deg(run.x, truth)
     assert error[0] > 50
     assert error[-500:].max() < 3.0, error[-500:].max()
 
 
-def test_zero_norm_samples_skip_that_correction(compiled):
+def one_step(compiled, form, q0, z, measurement, gyro, mask=None, dt=0.01):
+    f = make_filter(compiled, form, beta=0.3, q0=q0)
+    f.step(0.0, dt, z, measurement, u=gyro, mask=mask)
+    return f.x.copy()
+
+
+def test_zero_norm_and_masked_samples_skip_that_correction(compiled, fns):
     q0 = Rotation.from_euler("ZYX", [20, 10, 5], degrees=True).as_quat()
     gyro, dt = np.array([0.1, -0.3, 0.2]), 0.01
     acc, mag, zero = np.array([0.1, 0.2, 9.7]), np.array([20.0, 3.0, -40.0]), np.zeros(3)
-    gyro_only = paper_gyro_only(q0, gyro, dt)
+    gyro_only = paper_gyro_only(fns, q0, gyro, dt)
+    no_acc, no_mag = np.r_[0, 0, 0, 1, 1, 1.0], np.r_[1, 1, 1, 0, 0, 0.0]
     for form in ("simple", "full"):
-        filt = MargFilter(compiled, form, "marg", beta=0.3, q0=q0)
-        np.testing.assert_allclose(filt.step(dt, gyro, zero, zero), gyro_only, atol=1e-15)
-        imu = MargFilter(compiled, form, "imu", beta=0.3, q0=q0).step(dt, gyro, acc)
-        np.testing.assert_allclose(MargFilter(compiled, form, "marg", beta=0.3, q0=q0).step(dt, gyro, acc, zero),
-                                   imu, atol=1e-15)
-        mag_only = MargFilter(compiled, form, "marg", beta=0.3, q0=q0).step(dt, gyro, zero, mag)
-        np.testing.assert_allclose(mag_only, reference_step(form, q0, dt, gyro, zero, mag, 0.3, 10.0), atol=1e-15)
+        np.testing.assert_allclose(one_step(compiled, form, q0, np.r_[zero, zero], "marg", gyro), gyro_only, atol=1e-15)
+        np.testing.assert_allclose(one_step(compiled, form, q0, np.r_[acc, mag], "marg", gyro, np.zeros(6)),
+                                   gyro_only, atol=1e-15)
+        imu = one_step(compiled, form, q0, acc, "imu", gyro)
+        np.testing.assert_allclose(one_step(compiled, form, q0, np.r_[acc, zero], "marg", gyro), imu, atol=1e-15)
+        np.testing.assert_allclose(one_step(compiled, form, q0, np.r_[acc, mag], "marg", gyro, no_mag), imu, atol=1e-15)
+        mag_only = one_step(compiled, form, q0, np.r_[zero, mag], "marg", gyro)
+        reference = ReferenceGradientDescent("marg", f"gd_{form}", q0, p=[0.3, paper.ALPHA_DEFAULT])
+        np.testing.assert_allclose(mag_only, reference.step(0.0, dt, np.r_[zero, mag], "marg", u=gyro), atol=1e-15)
+        np.testing.assert_allclose(one_step(compiled, form, q0, np.r_[acc, mag], "marg", gyro, no_acc), mag_only,
+                                   atol=1e-15)
         assert np.all(np.isfinite(mag_only)) and abs(np.linalg.norm(mag_only) - 1) < 1e-15
         assert not np.allclose(mag_only, gyro_only)
     # the full form with a still gyro: mu_t = 0, so gamma_t = 1 and q_nabla = q (no NaN from 0/0)
-    still = MargFilter(compiled, "full", "marg", beta=0.3, q0=q0).step(dt, zero, acc, mag)
-    np.testing.assert_allclose(still, q0, atol=1e-15)
+    np.testing.assert_allclose(one_step(compiled, "full", q0, np.r_[acc, mag], "marg", zero), q0, atol=1e-15)
 
 
-def paper_gyro_only(q0, gyro, dt):
-    q = q0 + dt * np.asarray(marg_functions()["quaternion_rate"](q0, gyro)).ravel()
+def paper_gyro_only(fns, q0, gyro, dt):
+    q = q0 + dt * call(fns["quaternion_rate"], q0, gyro, P0)
     return q / np.linalg.norm(q)
 
 
 def test_initial_orientation_six_axis_matches_gravity(compiled):
-    filt = MargFilter(compiled, "simple", "imu")
     for _ in range(10):
         truth = Rotation.from_quat(random_unit())
         acc = 9.81 * truth.inv().apply([0, 0, 1.0])
-        q0 = Rotation.from_quat(filt.initialize(acc))
+        q0 = Rotation.from_quat(initial_orientation(compiled, acc, "imu"))
         np.testing.assert_allclose(q0.inv().apply([0, 0, 1.0]), acc / 9.81, atol=1e-12)   # same inclination

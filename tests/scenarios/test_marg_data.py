@@ -8,7 +8,8 @@ from scipy.io import loadmat
 from scipy.spatial.transform import Rotation
 
 from symkf.runtime import load
-from symkf.scenarios.marg.filter import MargFilter, reference_initial, reference_run
+from symkf.runtime.reference.gradient_descent import ReferenceGradientDescent
+from symkf.scenarios.marg.filter import initial_orientation, make_filter, samples
 from symkf.scenarios.marg.data import data_dir, load_recording, run_recording
 from symkf.scenarios.marg.broad_metric import broad_error_angles, broad_errors, error_rotation_vectors, to_enu
 
@@ -44,30 +45,32 @@ def test_broad_loader_converts_scalar_first_reference(broad):
 @pytest.mark.parametrize("form,mode", [("simple", "marg"), ("full", "marg"), ("simple", "imu")])
 def test_compiled_run_equals_numpy_reference_on_broad(compiled, broad, form, mode):
     rec = broad.head(2000)
-    filt = MargFilter(compiled, form, mode, beta=0.1)
-    run = run_recording(filt, rec)
-    q0 = filt.initialize(rec.acc[0], rec.mag[0] if mode == "marg" else None).copy()
+    filt = make_filter(compiled, form, beta=0.1)
+    run = run_recording(compiled, filt, rec, mode)
+    z = samples(rec.acc, rec.mag, mode)
+    q0 = initial_orientation(compiled, z[0], mode)
+    reference = ReferenceGradientDescent("marg", f"gd_{form}", q0, p=[0.1, filt.p[1]])
     if mode == "marg":
-        np.testing.assert_allclose(q0, reference_initial(rec.acc[0], rec.mag[0]), atol=1e-15)
-    reference = reference_run(form, mode, q0, rec.dt, rec.gyro, rec.acc, rec.mag, beta=0.1)
+        np.testing.assert_allclose(q0, reference.initial(z[0]), atol=1e-15)
     assert not run.failed_steps.size
-    np.testing.assert_allclose(run.q, reference, atol=1e-12, rtol=0)
+    np.testing.assert_allclose(run.x, reference.run(rec.time, z, mode, u=rec.gyro), atol=1e-12, rtol=0)
 
 
 @needs_xio
 def test_compiled_step_run_and_reference_agree_on_xio_with_real_dt(compiled):
     rec = load_recording(XIO_CSV).head(1500)
     assert rec.dt[1:].std() > 0            # non-uniform timestamps are used as they are
-    filt = MargFilter(compiled, "simple", "marg", beta=0.1)
-    run = run_recording(filt, rec)
-    stepper = MargFilter(compiled, "simple", "marg", beta=0.1)
-    q0 = stepper.initialize(rec.acc[0], rec.mag[0]).copy()
-    first = stepper.run(rec.dt[:1], rec.gyro[:1], rec.acc[:1], rec.mag[:1]).q[0]      # dt[0] = 0: step() needs > 0
-    steps = np.array([first] + [stepper.step(rec.dt[k], rec.gyro[k], rec.acc[k], rec.mag[k]).copy()
-                                for k in range(1, len(rec))])
-    np.testing.assert_allclose(run.q, steps, atol=1e-15, rtol=0)
-    np.testing.assert_allclose(run.q, reference_run("simple", "marg", q0, rec.dt, rec.gyro, rec.acc, rec.mag, 0.1),
-                               atol=1e-12, rtol=0)
+    run = run_recording(compiled, make_filter(compiled, "simple", beta=0.1), rec)
+    z = samples(rec.acc, rec.mag)
+    q0 = initial_orientation(compiled, z[0])
+    stepper = make_filter(compiled, "simple", beta=0.1, q0=q0)
+    steps = [stepper.run(rec.time[:1], z[:1], "marg", u=rec.gyro[:1]).x[0]]      # dt[0] = 0: step() needs > 0
+    for k in range(1, len(rec)):
+        stepper.step(rec.time[k - 1], rec.dt[k], z[k], "marg", u=rec.gyro[k])
+        steps.append(stepper.x.copy())
+    np.testing.assert_allclose(run.x, np.array(steps), atol=1e-15, rtol=0)
+    reference = ReferenceGradientDescent("marg", "gd_simple", q0, p=[0.1, stepper.p[1]])
+    np.testing.assert_allclose(run.x, reference.run(rec.time, z, "marg", u=rec.gyro), atol=1e-12, rtol=0)
 
 
 def test_broad_metric_definitions():
@@ -95,7 +98,7 @@ def test_broad_rmse_of_reference_is_zero_and_filter_is_accurate(compiled, broad)
     as_nwu[finite] = (enu_to_nwu * Rotation.from_quat(broad.reference[finite])).as_quat()
     zero = broad_errors(as_nwu, broad)
     assert zero["total"] < 1e-5 and zero["samples"] > 30000
-    run = run_recording(MargFilter(compiled, "simple", "marg", beta=0.041), broad)
-    errors = broad_errors(run.q, broad)
+    run = run_recording(compiled, make_filter(compiled, "simple", beta=0.041), broad)
+    errors = broad_errors(run.x, broad)
     # measured 2.1 deg total / 0.73 deg inclination (trial 01, beta = 0.041); bound with margin
     assert errors["total"] < 3.0 and errors["inclination"] < 1.5, errors
