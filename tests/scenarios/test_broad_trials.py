@@ -83,12 +83,12 @@ def test_mekf_one_parameter_set_beats_vqf_mean_and_madgwick_best_beta():
     """models/marg_mekf.py with scenarios/marg/mekf.py's one parameter set over the three trials:
     mean total RMSE <= VQF's 2.59 deg and every trial below Madgwick at its (oracle) best beta."""
     from symkf.runtime import load
-    from symkf.scenarios.marg import ekf
+    from symkf.scenarios.marg import mekf
     from symkf.scenarios.marg.broad_metric import broad_errors
     compiled, totals = load("marg_mekf"), {}
     for key, name in TRIALS.items():
         recording = load_recording(BROAD / f"{name}.mat")
-        result = ekf.run_recording(compiled, recording)
+        result = mekf.run_recording(compiled, recording)
         assert result.failed_steps.size == 0
         totals[key] = broad_errors(result.q, recording, frame="enu")["total"]
     assert all(totals[key] < MADGWICK_BEST_DEG[key] for key in TRIALS), totals
@@ -96,7 +96,7 @@ def test_mekf_one_parameter_set_beats_vqf_mean_and_madgwick_best_beta():
 
 
 @needs_broad
-@pytest.mark.parametrize("defect, message", [("nan", "mag: NaN/Inf at samples"), ("still", "no sample with movement")])
+@pytest.mark.parametrize("defect, message", [("nan", "z: NaN/Inf in used components at steps"), ("still", "no sample with movement")])
 def test_compare_names_a_defective_trial_instead_of_a_traceback(tmp_path, capsys, defect, message):
     """NaN magnetometer samples, or a cut with no movement phase to score: exit code 1, one line."""
     folder, n = tmp_path / "trials", 2000 if defect == "still" else 12000     # trial 07 rests for 25 s
