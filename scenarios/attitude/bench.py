@@ -18,7 +18,8 @@ from scipy.spatial.transform import Rotation
 
 from symkf.models import get_model
 from symkf.runtime import load
-from symkf.scenarios.attitude.filter import AttitudeFilter, ReferenceAttitudeFilter
+from symkf.scenarios.attitude.filter import AttitudeFilter
+from symkf.scenarios.attitude.reference import ReferenceAttitudeFilter
 
 KINDS = ("mekf", "ukf", "aukf")
 
