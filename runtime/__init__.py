@@ -18,9 +18,10 @@ import time
 from symkf.codegen import CompilerNotFound, FilterSpec, build_validated, config_for, generate_validated
 from symkf.models import get_model
 from .backends import CompiledBackend, StaleLibraryError, SymkfError, VirtualMachineBackend
-from .filters import Filter, KalmanFilter, RunResult
+from .filters import Filter
+from .runs import RunResult
 
-__all__ = ["CompiledModel", "Filter", "KalmanFilter", "RunResult", "StaleLibraryError", "SymkfError", "load"]
+__all__ = ["CompiledModel", "Filter", "RunResult", "StaleLibraryError", "SymkfError", "load"]
 
 
 class CompiledModel:

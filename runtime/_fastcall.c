@@ -24,7 +24,7 @@
  * the step's carried state is read; after it succeeded that state and the step's per-step inputs
  * are kept in the filter's replay buffers and the measurement's `stale` flag is set, so that y and
  * S, when asked for, are computed by the checked step from exactly those inputs
- * (symkf/runtime/filters.py). A failed step keeps nothing: the replay stays the last success's.
+ * (symkf/runtime/fastpath.py). A failed step keeps nothing: the replay stays the last success's.
  *
  * Whatever it does not accept it returns None for, having written nothing: the caller then runs
  * the Python contract (symkf/runtime/contract.py), which accepts or refuses it with a clear error.

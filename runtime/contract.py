@@ -1,14 +1,15 @@
-"""The input contract every filter enforces before it writes a buffer (issue 10).
+"""The input contract every filter enforces before it writes a buffer.
 
 One function per kind of argument; each returns a clean float64 value or raises ``ValueError``
 naming the argument and what was wrong. Nothing here touches a filter's state.
 
-- real scalars: a number (not a string, bool or array), finite; ``dt`` > 0 (a run's first
-  step may be 0); ``t`` any finite time;
+- real scalars: a number (not a string, bool or array), finite; ``dt`` > 0; ``t`` any finite time;
 - arrays: numbers of exactly the declared shape (a bool inside a list or tuple is refused, not read as 0 or 1);
 - covariances: P and Q symmetric positive semi-definite, R symmetric positive definite, finite;
 - masks: exactly 0 or 1 everywhere;
-- run times: 1-D, finite, strictly increasing;
+- innovation gates: a probability in (0, 1) or a threshold > 0, not both;
+- runs: times 1-D, finite, strictly increasing; step lengths 1-D, finite, > 0, the first may be 0
+  (a run that starts with the update at the filter's time);
 - NaN policy: ``nan="raise"`` (default: a NaN/Inf measurement is an error) or ``nan="mask"``
   (that component is skipped);
 - dictionaries (R per measurement, options): unknown keys are errors.
@@ -19,6 +20,7 @@ import math
 import numbers
 
 import numpy as np
+from scipy.stats import chi2
 
 #: Relative tolerance of the symmetry and semi-definiteness checks of a covariance.
 SYMMETRY_RTOL = 1e-9
@@ -125,6 +127,25 @@ def mask(value, shape: tuple[int, ...]) -> np.ndarray:
     return array
 
 
+def gate(probability, threshold, size: int) -> np.ndarray:
+    """A chi-square innovation gate's thresholds per number of used components 1..size: the
+    ``probability`` quantile of chi2(k), or ``threshold`` for every k; neither: zeros (no gate)."""
+    gate = np.zeros(size)
+    if probability is not None and threshold is not None:
+        raise ValueError("gate: give a probability or a threshold, not both")
+    if probability is not None:
+        probability = real("probability", probability)
+        if not 0 < probability < 1:
+            raise ValueError(f"probability: must be in (0, 1), got {probability}")
+        gate = chi2.ppf(probability, np.arange(1, gate.size + 1))
+    elif threshold is not None:
+        threshold = real("threshold", threshold)
+        if threshold <= 0:
+            raise ValueError(f"threshold: must be > 0, got {threshold}")
+        gate[:] = threshold
+    return gate
+
+
 def nan_policy(value) -> str:
     if value not in NAN_POLICIES:
         raise ValueError(f"nan: expected one of {NAN_POLICIES}, got {value!r}")
@@ -146,6 +167,16 @@ def run_times(times) -> np.ndarray:
     return array
 
 
+def run_steps(dt) -> np.ndarray:
+    """A run's step lengths: 1-D, finite, > 0 except the first, which may be 0."""
+    array = as_array("dt", dt, np.shape(dt))
+    if array.ndim != 1:
+        raise ValueError(f"dt: expected a 1-D array, got shape {array.shape}")
+    if not (np.isfinite(array).all() and np.all(array[1:] > 0) and np.all(array[:1] >= 0)):
+        raise ValueError("dt: every step must be finite and > 0 (the first may be 0)")
+    return array
+
+
 def known_keys(name: str, given: dict | None, known) -> dict:
     """``given`` (or {}) with every key in ``known``; ValueError names the unknown ones."""
     given = {} if given is None else given
@@ -160,5 +191,5 @@ def known_keys(name: str, given: dict | None, known) -> dict:
 def read_only(array: np.ndarray) -> np.ndarray:
     """A read-only view of a buffer the C code writes (users inspect it, never assign into it). Its
     base is a read-only memoryview, so numpy refuses to make it writeable again: x and P change
-    only through the filter's calls, which its trusted steps rely on (runtime/filters.py)."""
+    only through the filter's calls, which its trusted steps rely on (runtime/fastpath.py)."""
     return np.asarray(memoryview(array).toreadonly())

@@ -3,7 +3,7 @@
 ``Filter.step(t, dt, z, q=...)`` with float64 arrays of the right shape is the call a tracker
 makes thousands of times a second. Through the Python contract it costs tens of microseconds
 (type and shape checks, dict handling, copies, a ctypes call); :file:`_fastcall.c` does the same
-checks, copies and kernel call in C (issue 12). The rules stay in :mod:`symkf.runtime.contract`:
+checks, copies and kernel call in C. The rules stay in :mod:`symkf.runtime.contract`:
 the extension accepts only calls the contract accepts, writes the same values, and returns None
 (having written nothing) for anything else, which the Python path then accepts or refuses.
 

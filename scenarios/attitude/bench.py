@@ -17,7 +17,8 @@ from symkf.models import get_model
 from symkf.runtime import load
 from symkf.scenarios import timing
 from symkf.scenarios.report import emit
-from symkf.scenarios.attitude.filter import AttitudeFilter, ReferenceAttitudeFilter
+from symkf.scenarios.attitude.filter import AttitudeFilter
+from symkf.scenarios.attitude.reference import ReferenceAttitudeFilter
 
 KINDS = ("mekf", "ukf", "aukf")
 

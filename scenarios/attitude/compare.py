@@ -50,7 +50,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from symkf.models import attitude as att
-from symkf.scenarios.attitude.filter import DEFAULT_KAPPA, AttitudeFilter
+from symkf.scenarios.attitude.filter import AttitudeFilter
+from symkf.scenarios.attitude.reference import DEFAULT_KAPPA
 from symkf.scenarios.campaign import (ModelKey, ProgressBar, Task, add_scheduler_arguments, compiled_model, model_key,
                                       run_campaign, run_rng, scheduler_problem)
 

@@ -10,13 +10,16 @@ Conventions: x = [q; b] with q scalar-last (paper 000), P the 6x6 covariance of 
 δp the vector part of δq = q ⊗ q̂⁻¹ (half-angle units). Q: 6x6 PSD of [η_a; η_b]; R: 3x3
 covariance of the star-tracker noise rotation vector η_s. Defaults: Table 1.
 
-Bad input: the contract of every filter (:mod:`symkf.runtime.contract`): shapes, dt > 0, P and
+Bad input: the contract of every filter (:mod:`symkf.runtime.contract`): shapes, dt, P and
 Q symmetric PSD, R PD; an initial quaternion is normalised if its norm is within 1e-3 of 1 and
 rejected otherwise; a star-tracker quaternion with NaN/Inf raises SymkfError (NONFINITE) unless
 ``nan="mask"`` (pass ``None`` to skip a missing measurement; in :meth:`AttitudeFilter.run` a NaN
 row means "no measurement"); a star-tracker quaternion whose norm is off 1 by more than 1e-3 is
 rejected by the kernel (SYMKF_ERR_DOMAIN), smaller deviations are normalised. A failed step
 raises and leaves x, P and t unchanged. The NumPy reference lives in :mod:`symkf.scenarios.attitude.reference`.
+
+The adapter only renames: step(omega_g, dt, q_s) is ``Filter.step(t, dt, q_s, "star_tracker",
+u=omega_g)``, so the generic C fast path of :class:`~symkf.runtime.filters.Filter` serves it.
 """
 from __future__ import annotations
 
@@ -24,9 +27,9 @@ import numpy as np
 
 from symkf.models import attitude as model
 from symkf.runtime import contract
-from symkf.runtime.filters import Filter, RunResult
-from .reference import (DEFAULT_KAPPA, KINDS, NORM_TOLERANCE, ReferenceAttitudeFilter, _initial_state,  # noqa: F401
-                        eigen_mean, unit_quaternion)
+from symkf.runtime.filters import Filter
+from symkf.runtime.runs import RunResult
+from .reference import DEFAULT_KAPPA, KINDS, ReferenceAttitudeFilter, _initial_state
 
 #: The generated filter behind each of paper 000's filters: the generic multiplicative EKF, the
 #: separated-noise UKF and the augmented UKF of the manifold families.
@@ -59,14 +62,6 @@ class AttitudeFilter(Filter):
         super().__init__(compiled, FILTER_OF_KIND[kind], x, P, Q, R=R, **options)
         self.kind = kind
 
-    #: Fast path of :meth:`step`: the gyro output (``u``) is required, the mask always ones.
-    FAST_NONE = {"mask": "ones", "u": "decline"}
-
-    def _make_fast_paths(self) -> None:
-        super()._make_fast_paths()
-        self._fast_sample = self._fast_step(self.MEASUREMENT, ("z", "mask", "u"))
-        self._install_step(AttitudeFilter.step, self._fast_sample, (None, "dt", "q_s", None, "omega_g"))
-
     y = property(lambda self: Filter.y(self, self.MEASUREMENT), doc="Innovation δp_s of the last update (eq 50).")
     S = property(lambda self: Filter.S(self, self.MEASUREMENT), doc="Innovation covariance P^yy of the last update.")
     q = property(lambda self: self.x[0:4], doc="Attitude quaternion estimate (scalar-last).")
@@ -91,27 +86,19 @@ class AttitudeFilter(Filter):
         if q_s is None:
             self.predict(omega_g, dt)
             return 0
-        fast = self._fast_sample
-        if fast is not None and nan == "raise":
-            code = fast(None, dt, q_s, None, omega_g)   # None: not a plain call, the Python path decides
-            if code is not None:
-                return code
-        omega_g = contract.finite_array("omega_g", omega_g, (3,))
-        return self._step(self.MEASUREMENT, self.t, dt, {"z": q_s, "q": None, "mask": None}, omega_g, nan)
+        if omega_g is None:
+            raise ValueError("omega_g: the gyro output (3,) is required")
+        return Filter.step(self, self.t, dt, q_s, self.MEASUREMENT, u=omega_g, nan=nan)
 
     def run(self, omega_g, dt, q_s) -> RunResult:
-        """All steps in one compiled call (the C run loop). Step k propagates over dt[k] (> 0)
+        """All steps in one compiled call (the C run loop). Step k propagates over dt[k] (one dt
+        for every step, or one per step: the run rule of :func:`symkf.runtime.contract.run_steps`)
         with omega_g[k] and updates with q_s[k] unless that row has NaN (no measurement)."""
         shape = np.shape(omega_g)
         n_steps = shape[0] if len(shape) == 2 else 0
         omega_g = contract.finite_array("omega_g", omega_g, (n_steps, 3))
         dt = np.broadcast_to(contract.as_array("dt", dt, np.shape(dt)), (n_steps,))
-        if not (np.isfinite(dt).all() and np.all(dt > 0)):
-            raise ValueError("dt: every step must be finite and > 0")
-        per_step = {"t": self.t + np.concatenate([[0.0], np.cumsum(dt)[:-1]]), "dt": dt}
-        per_step.update(self._run_series(self.MEASUREMENT, n_steps, {"z": q_s, "q": None, "mask": None}, omega_g, "mask"))
-        result = self._run(self.MEASUREMENT, per_step, n_steps)
-        return result
+        return self.run_steps(dt, q_s, self.MEASUREMENT, u=omega_g, nan="mask")
 
 
 def attitude_filter(kind: str, q0, b0, P0, backend: str = "auto", **options) -> AttitudeFilter:
@@ -120,8 +107,5 @@ def attitude_filter(kind: str, q0, b0, P0, backend: str = "auto", **options) -> 
     return AttitudeFilter(load("attitude", backend=backend), kind, q0, b0, P0, **options)
 
 
-#: Older name of the run result.
-AttitudeRun = RunResult
-
-__all__ = ["AttitudeFilter", "AttitudeRun", "ReferenceAttitudeFilter", "attitude_filter", "eigen_mean",
-           "unit_quaternion"]
+#: ReferenceAttitudeFilter: tests/test_contract.py imports it from here.
+__all__ = ["AttitudeFilter", "ReferenceAttitudeFilter", "attitude_filter"]

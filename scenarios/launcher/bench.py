@@ -4,7 +4,7 @@
 
 Paths (rows ``{"filter", "path", "us_per_step", ...}``):
 - ``numpy_reference``: runtime/reference/ (NumPy algebra, model through CasADi calls);
-- ``compiled_step``: ``KalmanFilter.step`` — one C call per step from Python (the C fast path of
+- ``compiled_step``: ``Filter.step`` — one C call per step from Python (the C fast path of
   runtime/fastcall.py: checks, copies and kernel call in one call), each step's inputs ready as a
   measurement arrives (t a float, z and q arrays of their own), prepared before the timing as the
   C loop reads its inputs before its timing;

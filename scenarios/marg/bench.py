@@ -17,7 +17,7 @@
 - The generated multiplicative EKF of ``models/marg_mekf.py`` (``mekf``): µs per sample for
   ``step_bound`` (the bound checked C step, buffers filled), ``step_api``, ``step_api_indexed``
   and ``step_api_python`` (``Filter.step``, as above; after its first step the fast path calls
-  the trusted kernel, runtime/filters.py) and ``run`` (``Filter.run`` over the whole trial:
+  the trusted kernel, runtime/fastpath.py) and ``run`` (``Filter.run`` over the whole trial:
   contract checks, masks and the C loop); its BROAD RMSE per trial.
 - ``--instructions``: the MEKF's C API per sample under callgrind (deterministic; predict, update,
   step and run, and the step kernel's share of the run: ``scenarios/marg/instructions.py``).

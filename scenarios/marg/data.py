@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from symkf.runtime.filters import RunResult
+from symkf.runtime.runs import RunResult
 from symkf.scenarios.marg.filter import initial_orientation, samples
 
 

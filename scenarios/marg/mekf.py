@@ -30,7 +30,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from symkf.models import marg_mekf
-from symkf.runtime.filters import RunResult
+from symkf.runtime.runs import RunResult
 
 MAG_NORM_TOLERANCE = 0.03
 DIP_TOLERANCE = np.radians(10.0)

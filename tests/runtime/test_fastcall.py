@@ -50,7 +50,7 @@ def _state(f) -> tuple:
 def test_launcher_fast_path_equals_python_path_bit_for_bit(launcher_compiled, family):
     fast = launcher_compiled.filter(family, X0, P0, Q)
     slow = _python_path(launcher_compiled.filter(family, X0, P0, Q))
-    assert fast.fast_path and fast._fast_default is not None
+    assert fast.fast_path and fast._fast.default is not None
     masks = [None, np.array([1.0, 0.0, 1.0]), None, np.array([0.0, 0.0, 0.0]), None]
     for k in range(1, len(TIMES)):
         mask = masks[k % len(masks)]
@@ -138,7 +138,7 @@ DECLINED = {
 def test_fast_path_declines_and_writes_nothing(launcher_compiled, case):
     f = launcher_compiled.ekf(X0, P0, Q)
     before = _buffers(f)
-    assert f._fast_default(*DECLINED[case]) is None
+    assert f._fast.default(*DECLINED[case]) is None
     assert all(np.array_equal(a, b, equal_nan=True) for a, b in zip(before, _buffers(f)))
 
 
@@ -188,7 +188,7 @@ def test_rows_of_a_column_major_record_take_the_fast_path(launcher_compiled):
     z, q = np.asfortranarray(Z), np.asfortranarray(STATIONS)
     fast, slow = launcher_compiled.ekf(X0, P0, Q), _python_path(launcher_compiled.ekf(X0, P0, Q))
     for k in range(1, 4):
-        assert fast._fast_default(TIMES[k - 1], 0.05, z[k], q[k], None, None) == 0     # taken, not declined
+        assert fast._fast.default(TIMES[k - 1], 0.05, z[k], q[k], None, None) == 0     # taken, not declined
         fast.t = TIMES[k]
         slow.step(TIMES[k - 1], 0.05, Z[k], q=STATIONS[k])
         assert np.array_equal(fast.x, slow.x) and np.array_equal(fast.P, slow.P)
@@ -198,13 +198,13 @@ def test_other_float64_buffers_take_the_fast_path(launcher_compiled):
     """Not only ndarrays: any native float64 buffer (array.array, memoryview) is read the same."""
     import array
     fast, slow = launcher_compiled.ekf(X0, P0, Q), _python_path(launcher_compiled.ekf(X0, P0, Q))
-    assert fast._fast_default(TIMES[0], 0.05, array.array("d", Z[1]), memoryview(STATIONS[1]), None, None) == 0
+    assert fast._fast.default(TIMES[0], 0.05, array.array("d", Z[1]), memoryview(STATIONS[1]), None, None) == 0
     slow.step(TIMES[0], 0.05, Z[1], q=STATIONS[1])
     assert np.array_equal(fast.x, slow.x) and np.array_equal(fast.P, slow.P)
 
 
 def test_fast_path_checks_its_own_call(launcher_compiled):
-    fast = launcher_compiled.ekf(X0, P0, Q)._fast_default
+    fast = launcher_compiled.ekf(X0, P0, Q)._fast.default
     with pytest.raises(TypeError, match="positional"):
         fast(0.0, 0.05, _radar(1))
     with pytest.raises(TypeError):
@@ -345,8 +345,8 @@ def test_marg_step_method_returns_the_state_view(marg):
 def test_attitude_step_method_predicts_through_python_without_a_sample():
     f = attitude_filter("mekf", [0, 0, 0, 1.0], np.zeros(3), np.eye(6) * 1e-4, backend="compiled")
     q_s = np.array([0.01, 0.0, 0.0, np.sqrt(1 - 1e-4)])
-    assert f.step(np.array([1e-3, 0.0, 2e-3]), 0.1, q_s) == 0 and f.step.calls == 1
-    assert f.step(np.array([1e-3, 0.0, 2e-3]), 0.1) == 0 and f.step.calls == 1       # q_s None: predict
+    assert f.step(np.array([1e-3, 0.0, 2e-3]), 0.1, q_s) == 0 and f.fast_calls == 1
+    assert f.step(np.array([1e-3, 0.0, 2e-3]), 0.1) == 0 and f.fast_calls == 1       # q_s None: predict
     assert f.t == pytest.approx(0.2)
 
 

@@ -1,4 +1,4 @@
-"""Filter.step's trusted kernel (runtime/filters.py, runtime/_fastcall.c): once a step has succeeded
+"""Filter.step's trusted kernel (runtime/fastpath.py, runtime/_fastcall.c): once a step has succeeded
 and nothing was written from Python since, the fast path calls the run loop's trusted partner of
 the step (no test of |q| = 1, P PSD or R diagonal, no y, S) and keeps the step's inputs; y() and
 S() compute the diagnostics from them when asked. x, P, t, codes, y and S must be bit for bit those
@@ -62,7 +62,7 @@ def _same(fast, slow) -> None:
 
 
 def _trusted_calls(f) -> int:
-    return f._fast["marg"].trusted_calls
+    return f._fast.steps["marg"].trusted_calls
 
 
 @pytest.mark.parametrize("threshold", [None, 0.01])
@@ -159,7 +159,7 @@ def test_attitude_mekf_diagnostics_through_its_own_step(compiled):
             assert np.array_equal(fast.y, slow.y) and np.array_equal(fast.S, slow.S)
     assert np.array_equal(fast.x, slow.x) and np.array_equal(fast.P, slow.P)
     assert np.array_equal(fast.y, slow.y) and np.array_equal(fast.S, slow.S)
-    assert fast._fast_sample.trusted_calls == 29
+    assert fast._fast.steps["star_tracker"].trusted_calls == 29
 
 
 def test_the_views_a_filter_hands_out_cannot_be_made_writeable(compiled, recording):
@@ -182,7 +182,7 @@ def test_diagnostics_the_checked_kernel_refuses_to_replay_are_nan(compiled, reco
     for k in range(1, 5):
         feed.step(f, k)
     assert _trusted_calls(f) == 3
-    f._replays["marg"].buffers["P"][0, 0] = -1.0
+    f._fast.replays["marg"].buffers["P"][0, 0] = -1.0
     x, P = f.x.copy(), f.P.copy()
     assert np.isnan(f.y("marg")).all() and np.isnan(f.S("marg")).all()
     assert np.array_equal(f.x, x) and np.array_equal(f.P, P)

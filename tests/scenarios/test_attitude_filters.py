@@ -9,8 +9,8 @@ from symkf.codegen.spec import STATUS_DOMAIN
 from symkf.models import attitude as att
 from symkf.models import get_model
 from symkf.runtime import SymkfError, load
-from symkf.scenarios.attitude.filter import AttitudeFilter, ReferenceAttitudeFilter, eigen_mean
-from symkf.scenarios.attitude.reference import _Functions
+from symkf.scenarios.attitude.filter import AttitudeFilter
+from symkf.scenarios.attitude.reference import ReferenceAttitudeFilter, _Functions, eigen_mean
 
 N_PROPAGATION_POINTS = 25       # 2 (6 + 6) + 1: the separated UKF's [x, w] set, the size of the mean kernel
 

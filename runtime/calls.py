@@ -1,0 +1,138 @@
+"""One call of a :class:`~symkf.runtime.filters.Filter` on its Python path: its inputs checked
+against the filter's buffers before anything is written (the measurement named, the input ``u``,
+a measurement's z, q and mask: the rules of :mod:`symkf.runtime.contract`, the NaN policy, the
+element type of a float build), then written, and the kernel's status code turned into the
+call's result or its :class:`~symkf.runtime.backends.SymkfError`; and the constructor's initial
+values, written through the filter's setters (a user's checks)."""
+from __future__ import annotations
+
+import numpy as np
+
+from symkf.codegen.spec import STATUS_GATED, STATUS_NONFINITE
+from . import contract
+from .backends import SymkfError
+from .buffers import fits
+
+
+def initialise(filt, x0, P0, Q, R: dict | None, p, gate: dict | None, scalars: dict) -> None:
+    """x, P, Q, p, the kernels' scalar options (defaults from the spec), R per measurement
+    (default diag(sigma^2) from the model) and the innovation gates of a new filter."""
+    shared, spec, model = filt._buffers, filt.spec, filt.model
+    filt.x = x0
+    if "P" in shared:
+        filt.P = P0
+    if "Q" in shared:
+        filt.Q = Q
+    if "p" in shared:
+        filt.p = [v["default"] for v in model["params"]] if p is None else p
+    known = {name: value for name, value in spec.defaults.items()}
+    known.update(contract.known_keys("options", scalars, spec.defaults))
+    for name, value in known.items():
+        shared[name][0] = fits(filt._dtype, name, contract.real(name, value))
+    R = contract.known_keys("R", R, spec.measurements)
+    for name in spec.measurements:
+        if "R" in filt.measurements[name]:
+            filt.set_R(name, R[name] if name in R else np.diag(np.square(model["measurements"][name]["sigma"])))
+    for name, value in contract.known_keys("gate", gate, spec.measurements).items():
+        filt.set_gate(name, **(value if isinstance(value, dict) else {"probability": value}))
+
+
+def measurement_name(filt, measurement: str | None, kind: str) -> str:
+    """The measurement a ``kind`` ("update" or "step") call of ``filt`` names (None: its default)."""
+    name = filt._default if measurement is None else measurement
+    if name not in getattr(filt.spec, kind):
+        raise ValueError(f"measurement: '{name}' is not one of {list(getattr(filt.spec, kind))} "
+                         f"(filter '{filt.family}', {kind})")
+    return name
+
+
+def u_input(filt, u) -> np.ndarray | None:
+    """The checked input ``u`` of a call (None: the held one)."""
+    if u is None or "u" not in filt._buffers:
+        if u is not None:
+            raise ValueError(f"u: filter '{filt.family}' has no inputs")
+        return None
+    return fits(filt._dtype, "u", contract.finite_array("u", u, filt._buffers["u"].shape))
+
+
+def measurement_values(filt, name: str, given: dict, nan: str) -> dict[str, np.ndarray]:
+    """Validated per-call measurement inputs (z, q, mask or a family's own); writes nothing."""
+    nan = contract.nan_policy(nan) if nan != "raise" else nan
+    buffers = filt.measurements[name]
+    values = {}
+    for key, value in given.items():
+        if key not in buffers:
+            if value is not None:
+                raise ValueError(f"{key}: measurement '{name}' of filter '{filt.family}' takes no {key}")
+            continue
+        if key == "mask":
+            values[key] = None if value is None else contract.mask(value, buffers[key].shape)
+        elif key == "q" and value is None and buffers[key].size:
+            params = [v["name"] for v in filt.model["measurements"][name]["params"]]
+            raise ValueError(f"q: measurement '{name}' needs its parameters {params} (q=...) on every call")
+        elif value is not None or buffers[key].size:
+            values[key] = contract.exact_array(key, value, buffers[key].shape)
+    if nan == "mask":
+        values = mask_nonfinite(values, buffers)
+    for key, value in values.items():
+        if value is not None:
+            fits(filt._dtype, key, value)
+    return values
+
+
+def mask_nonfinite(values: dict, buffers: dict) -> dict:
+    """nan="mask": non-finite measurement components are masked (the whole measurement when
+    its mask is one number)."""
+    z = values["z"]
+    finite = np.isfinite(z)
+    mask = np.ones(buffers["mask"].shape) if values.get("mask") is None else values["mask"]
+    values["mask"] = mask * (finite if mask.shape == finite.shape else float(finite.all()))
+    values["z"] = np.where(finite, z, 0.0)
+    return values
+
+
+def write_time(filt, t: float, dt: float | None, u) -> None:
+    """Time (and input) of a call: checked for the buffers' type before anything is written;
+    the measurement's values are written after this (they are already checked)."""
+    fits(filt._dtype, "t", t)
+    fits(filt._dtype, "dt", dt if dt is not None else 0.0)
+    filt._fast.before_write()
+    shared = filt._buffers
+    if "t" in shared:
+        shared["t"][0] = t
+    if dt is not None:
+        shared["dt"][0] = dt
+    if u is not None:
+        shared["u"][:] = u
+
+
+def write_measurement(filt, name: str, values: dict) -> None:
+    """The checked values of measurement ``name`` into its buffers (an omitted mask: all ones)."""
+    filt._fast.before_write()
+    buffers = filt.measurements[name]
+    for key, value in values.items():
+        if key == "mask":
+            buffers["mask"][...] = 1.0 if value is None else value
+        else:
+            buffers[key][...] = value
+
+
+def check(filt, code: int, what: str, measurement: str | None = None) -> int:
+    """``code`` if it is 0 or SYMKF_GATED, else the :class:`SymkfError` of call ``what``."""
+    if code == 0 or code == STATUS_GATED:
+        return code
+    detail = ""
+    if code == STATUS_NONFINITE and measurement is not None:
+        detail = nonfinite_detail(filt.measurements[measurement])
+    raise SymkfError(f"{filt.family} {what}", code, detail)
+
+
+def nonfinite_detail(buffers: dict) -> str:
+    """Which used components of a measurement's z are NaN/Inf (for a SYMKF_ERR_NONFINITE), or ""."""
+    if "z" not in buffers:
+        return ""
+    mask = buffers.get("mask", np.ones(1))
+    bad = ~np.isfinite(buffers["z"]) & (mask > 0.5 if mask.shape == buffers["z"].shape else mask[0] > 0.5)
+    if not bad.any():
+        return ""
+    return f"measurement z has NaN/Inf at components {np.flatnonzero(bad).tolist()}; pass nan='mask' to skip them"
