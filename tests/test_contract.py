@@ -29,7 +29,7 @@ from symkf.models import get_model
 from symkf.models import launcher as L
 from symkf.runtime import Filter, SymkfError, load
 from symkf.scenarios.attitude.filter import ReferenceAttitudeFilter
-from symkf.scenarios.marg.filter import MargFilter, reference_step
+from symkf.runtime.reference.gradient_descent import ReferenceGradientDescent
 from symkf.runtime.reference import ManifoldReference, NumpyCDEKF, ReferenceFilter
 
 N_STEPS = 6
@@ -52,16 +52,9 @@ class Case:
 
     @property
     def id(self) -> str:
-        return f"{Path(self.model).stem}-{self.name}"
-
-    @property
-    def marg(self) -> bool:
-        return self.model == "marg"
+        return f"{Path(self.model).stem}-{self.name}-{self.measurement}"
 
     def make(self, compiled):
-        if self.marg:
-            form, mode = self.name.split("_")[1:]
-            return MargFilter(compiled, form, mode, beta=0.1, alpha=2.0, q0=self.x0)
         return Filter(compiled, self.name, self.x0, self.P0, self.Q, **self.options)
 
     def inputs(self, k: int) -> dict:
@@ -85,7 +78,8 @@ class Case:
                         u=np.array([1e-3, -2e-3, 5e-4]))
         acc = np.array([0.1, -0.2, 9.8]) + 0.05 * rng.standard_normal(3)
         mag = np.array([20.0, 1.0, -40.0]) + rng.standard_normal(3)
-        return dict(t=None, dt=0.01, z=acc, mag=mag, q=None, u=np.array([0.01, -0.02, 0.3]))
+        return dict(t=(k - 1) * 0.01, dt=0.01, z=acc if self.measurement == "imu" else np.r_[acc, mag], q=None,
+                    u=np.array([0.01, -0.02, 0.3]))
 
 
 _LAUNCHER_TRUTH: dict[int, np.ndarray] = {}
@@ -127,7 +121,8 @@ def _attitude_cases():
 
 def _marg_cases():
     q0 = np.array([0.0, 0.0, np.sin(0.1), np.cos(0.1)])
-    return [Case("marg", f"gd_{form}_{mode}", q0, measurement=mode) for form in ("simple", "full") for mode in ("imu", "marg")]
+    return [Case("marg", f"gd_{form}", q0, measurement=mode, options={"p": [0.1, 2.0]})
+            for form in ("simple", "full") for mode in ("imu", "marg")]
 
 
 def _spinner_cases():
@@ -156,9 +151,6 @@ def vm():
 def step(case: Case, f, k: int, **override):
     """One valid step k (arguments overridden as given)."""
     a = {**case.inputs(k), **override}
-    if case.marg:
-        mag = a.get("mag") if case.measurement == "marg" else None
-        return f.step(a["dt"], a["u"], a["z"], mag, **({"nan": a["nan"]} if "nan" in a else {}))
     extra = {key: a[key] for key in ("mask", "nan") if key in a}
     return f.step(a["t"], a["dt"], a["z"], measurement=case.measurement, q=a["q"], u=a["u"], **extra)
 
@@ -166,18 +158,12 @@ def step(case: Case, f, k: int, **override):
 def run(case: Case, f, n: int, first: int = 1, **override):
     """Steps first .. first + n - 1 as one run (its first step has dt = 0)."""
     rows = [{**case.inputs(k), **override} for k in range(first, first + n)]
-    if case.marg:
-        dt = np.array([0.0] + [r["dt"] for r in rows[1:]])
-        mag = np.array([r["mag"] for r in rows]) if case.measurement == "marg" else None
-        return f.run(dt, np.array([r["u"] for r in rows]), np.array([r["z"] for r in rows]), mag)
     times = run_times(case, n, first)
     z = np.array([r["z"] for r in rows])
     q = None if rows[0]["q"] is None else np.array([r["q"] for r in rows])
     u = None if rows[0]["u"] is None else np.array([r["u"] for r in rows])
     if case.model == "attitude":       # Q/dt: every step of an attitude run has dt > 0
-        per_step = {"t": np.array([r["t"] for r in rows]), "dt": np.array([r["dt"] for r in rows])}
-        per_step.update(f._run_series(case.measurement, n, {"z": z, "q": None, "mask": None}, u, "raise"))
-        return f._run(case.measurement, per_step, n)
+        return f.run_steps(np.array([r["dt"] for r in rows]), z, case.measurement, u=u)
     return f.run(times, z, measurement=case.measurement, q=q, u=u)
 
 
@@ -221,10 +207,6 @@ def _kernel_inputs(kernel, case: Case, rng) -> dict:
             values[name] = a["q"]
         elif name == "z" and np.size(a["z"]) == n:
             values[name] = a["z"]
-        elif name == "acc":
-            values[name] = a["z"]
-        elif name == "mag":
-            values[name] = a.get("mag", np.ones(3))
         elif name == "u" and a.get("u") is not None and np.size(a["u"]) == n:
             values[name] = a["u"]
         elif name == "mask":
@@ -275,13 +257,11 @@ def test_every_generated_function_equals_casadi(compiled, model):
 def _reference_states(case: Case) -> list[np.ndarray]:
     """The NumPy reference over steps 1..N_STEPS (the same inputs as :func:`step`)."""
     out = []
-    if case.marg:
-        form, mode = case.name.split("_")[1:]
-        q = case.x0.copy()
+    if case.model == "marg":
+        ref = ReferenceGradientDescent("marg", case.name, case.x0, case.options["p"])
         for k in range(1, N_STEPS + 1):
             a = case.inputs(k)
-            q = reference_step(form, q, a["dt"], a["u"], a["z"], a["mag"] if mode == "marg" else None, 0.1, 2.0)
-            out.append(q)
+            out.append(ref.step(a["t"], a["dt"], a["z"], case.measurement, u=a["u"]).copy())
         return out
     if case.model == "attitude":
         R = case.options["R"]["star_tracker"]
@@ -339,7 +319,7 @@ def test_run_equals_steps(compiled, case):
     history = [run(case, stepped, 1).x[0]]
     times = run_times(case, N_STEPS)
     for k in range(2, N_STEPS + 1):
-        same = {} if case.model in ("attitude", "marg") else {"t": times[k - 2], "dt": times[k - 1] - times[k - 2]}
+        same = {} if case.model == "attitude" else {"t": times[k - 2], "dt": times[k - 1] - times[k - 2]}
         step(case, stepped, k, **same)
         history.append(stepped.x.copy())
     assert not result.failed_steps.size
@@ -368,20 +348,15 @@ def _bad_step_inputs(case: Case) -> dict[str, dict]:
            "z NaN": {"z": np.where(np.arange(z.size) == 0, np.nan, z)}, "z Inf": {"z": np.where(np.arange(z.size) == 0, np.inf, z)},
            "z short": {"z": z[:-1]}, "z column": {"z": z[:, None]}, "z string": {"z": "abc"},
            "z strings": {"z": [str(v) for v in z]}, "z with a bool": {"z": [True] + [float(v) for v in z[1:]]}, "z complex": {"z": z + 1j}, "z None": {"z": None},
-           "u NaN": {"u": np.full(3 if case.marg or case.model == "attitude" else 4, np.nan)} if a["u"] is not None else None,
-           "u shape": {"u": np.zeros(7)}, "nan policy": {"nan": "ignore"}}
-    if not case.marg:
-        bad.update({"t NaN": {"t": np.nan}, "t string": {"t": "now"}})
-        m = 1 if case.model == "attitude" else z.size
-        bad.update({"mask 0.5": {"mask": np.full(m, 0.5)}, "mask 2": {"mask": np.full(m, 2.0)},
-                    "mask NaN": {"mask": np.full(m, np.nan)}, "mask shape": {"mask": np.ones(m + 1)}})
+           "u NaN": {"u": np.full(np.size(a["u"]), np.nan)} if a["u"] is not None else None,
+           "u shape": {"u": np.zeros(7)}, "nan policy": {"nan": "ignore"},
+           "t NaN": {"t": np.nan}, "t string": {"t": "now"}}
+    m = 1 if case.model == "attitude" else z.size
+    bad.update({"mask 0.5": {"mask": np.full(m, 0.5)}, "mask 2": {"mask": np.full(m, 2.0)},
+                "mask NaN": {"mask": np.full(m, np.nan)}, "mask shape": {"mask": np.ones(m + 1)}})
     if a["q"] is not None:
         bad.update({"q missing": {"q": None}, "q NaN": {"q": np.full(np.size(a["q"]), np.nan)},
                     "q shape": {"q": np.zeros(np.size(a["q"]) + 1)}})
-    if case.marg:
-        bad.update({"gyro huge": {"u": np.full(3, 1e308)}, "acc NaN": {"z": np.array([np.nan, 0, 9.8])}})
-        if case.measurement == "marg":
-            bad["mag NaN"] = {"mag": np.array([np.nan, 0.0, 1.0])}
     return {k: v for k, v in bad.items() if v is not None}
 
 
@@ -430,7 +405,7 @@ def test_bad_settings_raise_and_leave_state_bit_identical(compiled, case):
         assert_unchanged(f, before)
 
 
-@pytest.mark.parametrize("case", [c for c in CASES if not c.marg], ids=lambda c: c.id)
+@pytest.mark.parametrize("case", [c for c in CASES if c.P0 is not None], ids=lambda c: c.id)
 def test_bad_noise_and_options_are_refused(compiled, case):
     model = compiled[case.model]
     m = model.model["measurements"][case.measurement]
@@ -450,19 +425,6 @@ def test_bad_run_inputs_raise_and_leave_state_bit_identical(compiled, case):
     f = case.make(compiled[case.model])
     step(case, f, 1)
     before = snapshot(f)
-    if case.marg:
-        n = 4
-        a = case.inputs(1)
-        good = dict(dt=np.full(n, 0.01), gyro=np.tile(a["u"], (n, 1)), acc=np.tile(a["z"], (n, 1)),
-                    mag=np.tile(a["mag"], (n, 1)) if case.measurement == "marg" else None)
-        bad = [dict(dt=np.array([0.01, -0.01, 0.01, 0.01])), dict(dt=np.array([0.01, np.nan, 0.01, 0.01])),
-               dict(dt="0.01"), dict(gyro=np.full((n, 3), np.nan)), dict(gyro=np.zeros((n, 2))),
-               dict(acc=np.vstack([np.full((1, 3), np.nan), good["acc"][1:]]))]
-        for override in bad:
-            with pytest.raises(ValueError):
-                f.run(**{**good, **override})
-            assert_unchanged(f, before)
-        return
     a = case.inputs(1)
     times = a["t"] + a["dt"] * np.arange(1, 5)
     z = np.tile(a["z"], (4, 1))
@@ -489,10 +451,7 @@ def test_nan_mask_policy_skips_the_component(compiled, case):
     a = case.inputs(1)
     z = np.array(a["z"], dtype=float)
     z[0] = np.nan
-    if case.marg:
-        step(case, f, 1, z=z, nan="mask")
-        step(case, g, 1, z=np.zeros(3))
-    elif case.model == "attitude":
+    if case.model == "attitude":
         step(case, f, 1, z=z, nan="mask")
         g.predict(a["t"], a["dt"], u=a["u"]) if g.spec.predict else None
     else:
@@ -522,15 +481,15 @@ def test_c_refuses_what_python_promises(compiled, case):
     assert np.array_equal(f.x, x) and np.array_equal(f.P, P)
 
 
-@pytest.mark.parametrize("case", [c for c in CASES if c.marg], ids=lambda c: c.id)
-def test_marg_huge_finite_samples_never_give_a_zero_quaternion(compiled, case):
+@pytest.mark.parametrize("case", [c for c in CASES if c.model == "marg"], ids=lambda c: c.id)
+def test_gradient_descent_huge_finite_samples_never_give_a_zero_quaternion(compiled, case):
     """A huge but finite sample is a direction like any other (normalised without overflow)."""
     f, g = case.make(compiled[case.model]), case.make(compiled[case.model])
     a = case.inputs(1)
-    step(case, f, 1, z=np.asarray(a["z"]) * 1e307, mag=np.asarray(a["mag"]) * 1e306)
+    step(case, f, 1, z=np.asarray(a["z"]) * np.r_[1e307, 1e307, 1e307, 1e306, 1e306, 1e306][:np.size(a["z"])])
     step(case, g, 1)
-    assert abs(np.linalg.norm(f.q) - 1) < 1e-14
-    np.testing.assert_allclose(f.q, g.q, atol=1e-14)
+    assert abs(np.linalg.norm(f.x) - 1) < 1e-14
+    np.testing.assert_allclose(f.x, g.x, atol=1e-14)
 
 
 # ---------------------------------------------------------------------- gating
@@ -597,10 +556,7 @@ def test_attitude_gate_refuses_an_outlier_and_counts_it(compiled, case):
     near = Rotation.from_quat(gated.x[:4]) * Rotation.from_rotvec(1e-5 * np.random.default_rng(3).normal(size=(4, 3)))
     z = near.as_quat()                                          # consistent with R and the filter's P
     z[2] = (Rotation.from_quat(z[2]) * Rotation.from_rotvec([0.0, -0.2, 0.0])).as_quat()
-    per_step = {"t": np.array([r["t"] for r in rows]), "dt": np.array([r["dt"] for r in rows])}
-    per_step.update(gated._run_series(case.measurement, 4, {"z": z, "q": None, "mask": None},
-                                      np.array([r["u"] for r in rows]), "raise"))
-    result = gated._run(case.measurement, per_step, 4)
+    result = gated.run_steps(np.array([r["dt"] for r in rows]), z, case.measurement, u=np.array([r["u"] for r in rows]))
     assert result.gated_steps == 1 and result.status[2] == STATUS_GATED and not result.failed_steps.size
 
 
@@ -643,15 +599,16 @@ def test_property_launcher_step_errs_cleanly_or_stays_psd(compiled, family, dt, 
 @settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(form=st.sampled_from(["simple", "full"]), dt=anything, gyro=st.lists(anything, min_size=3, max_size=3),
        acc=st.lists(anything, min_size=3, max_size=3), mag=st.lists(finite, min_size=3, max_size=3))
-def test_property_marg_step_errs_cleanly_or_stays_unit(compiled, form, dt, gyro, acc, mag):
-    f = MargFilter(compiled["marg"], form, "marg", q0=_marg_cases()[0].x0)
+def test_property_gradient_descent_step_errs_cleanly_or_stays_unit(compiled, form, dt, gyro, acc, mag):
+    case = next(c for c in _marg_cases() if c.name == f"gd_{form}" and c.measurement == "marg")
+    f = case.make(compiled["marg"])
     before = snapshot(f)
     try:
-        f.step(dt, np.array(gyro), np.array(acc), np.array(mag))
+        f.step(f.t, dt, np.r_[acc, mag], "marg", u=np.array(gyro))
     except (ValueError, SymkfError):
         assert_unchanged(f, before)
         return
-    assert np.isfinite(f.q).all() and abs(np.linalg.norm(f.q) - 1) < 1e-12
+    assert np.isfinite(f.x).all() and abs(np.linalg.norm(f.x) - 1) < 1e-12
 
 
 @pytest.mark.parametrize("value", [[1000.0, True, 0.2], (1000.0, 0.3, np.bool_(False)), [[1000.0], [False], [0.2]]])

@@ -9,9 +9,9 @@ import pytest
 
 from symkf.runtime import SymkfError, fastcall, load
 from symkf.scenarios.attitude.filter import attitude_filter
-from symkf.scenarios.marg.filter import MargFilter
+from symkf.scenarios.marg.filter import make_filter
 from symkf.scenarios.launcher.truth import propagate, radar_track
-from symkf.scenarios.marg import ekf
+from symkf.scenarios.marg import mekf
 from symkf.scenarios.marg.data import Recording
 
 P0 = np.diag([10.0, 1e-4, 1e-4, 1000.0, 1e-5, 1e-5]) ** 2
@@ -66,14 +66,14 @@ def test_launcher_fast_path_equals_python_path_bit_for_bit(launcher_compiled, fa
 @pytest.mark.parametrize("form", ["simple", "full"])
 def test_marg_fast_path_equals_python_path(marg, form):
     rng = np.random.default_rng(3)
-    fast, slow = MargFilter(marg, form), _python_path(MargFilter(marg, form))
-    assert fast._fast_sample is not None
+    fast, slow = make_filter(marg, form), _python_path(make_filter(marg, form))
     for k in range(50):
         gyro, acc, mag = rng.normal(0, 0.2, 3), rng.normal([0, 0, 9.8], 0.5), rng.normal([20, 0, -40], 2)
-        mag = None if k % 7 == 0 else mag                 # a missing magnetometer sample is zeros
-        q_fast, q_slow = fast.step(0.01, gyro, acc, mag), slow.step(0.01, gyro, acc, mag)
-        assert np.array_equal(q_fast, q_slow) and fast.t == slow.t
-    assert not q_fast.flags.writeable
+        mask = np.r_[np.ones(3), np.zeros(3) if k % 7 == 0 else np.ones(3)]   # a missing magnetometer sample
+        t = fast.t
+        codes = [f.step(t, 0.01, np.r_[acc, mag], "marg", mask=mask, u=gyro) for f in (fast, slow)]
+        assert codes == [0, 0] and np.array_equal(fast.x, slow.x) and fast.t == slow.t
+    assert fast.fast_calls == 50 and slow.fast_calls == 0 and not fast.x.flags.writeable
 
 
 def test_attitude_fast_path_equals_python_path():
@@ -222,10 +222,10 @@ def test_a_kernel_failure_is_raised_by_the_python_path_with_state_unchanged(laun
 
 def test_without_the_extension_every_call_takes_the_python_path(tmp_path):
     code = ("import numpy as np; from symkf.runtime import fastcall, load\n"
-            "from symkf.scenarios.marg.filter import MargFilter\n"
-            "m = MargFilter(load('marg', backend='compiled'))\n"
-            "q = m.step(0.01, np.zeros(3), np.array([0, 0, 9.8]), np.array([20.0, 0, -40]))\n"
-            "print(fastcall.extension() is None, m._fast_sample is None, fastcall.unavailable, list(q))")
+            "from symkf.scenarios.marg.filter import make_filter\n"
+            "m = make_filter(load('marg', backend='compiled'))\n"
+            "m.step(0.0, 0.01, np.array([0, 0, 9.8, 20.0, 0, -40]), 'marg', u=np.zeros(3))\n"
+            "print(fastcall.extension() is None, m.fast_calls == 0, fastcall.unavailable, list(m.x))")
     env = {**os.environ, "SYMKF_FASTCALL": "0"}
     proc = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr[-2000:]
@@ -249,10 +249,10 @@ def test_the_marg_mekf_common_call_takes_the_fast_path():
     records. Every call takes the fast path, with the Python path's numbers bit for bit."""
     compiled = load("marg_mekf", backend="compiled")
     recording = _still_then_turning()
-    z, mask = np.asfortranarray(ekf.measurements(recording)), np.asfortranarray(ekf.masks(recording))
+    z, mask = np.asfortranarray(mekf.measurements(recording)), np.asfortranarray(mekf.masks(recording))
     z[mask == 0] = np.nan                           # masked out: never read, taken all the same
     mag, gyro, dt = np.asfortranarray(recording.mag), np.asfortranarray(recording.gyro), recording.dt
-    fast, slow = ekf.make_filter(compiled, recording), _python_path(ekf.make_filter(compiled, recording))
+    fast, slow = mekf.make_filter(compiled, recording), _python_path(mekf.make_filter(compiled, recording))
     assert 0 < mask[:, 4].sum() < len(recording) - 1         # both states of the rest mask are met
     for k in range(1, len(recording)):
         for f in (fast, slow):
@@ -331,14 +331,14 @@ def test_the_step_method_keeps_python_s_errors_for_bad_arity(launcher_compiled):
     assert f.step.calls == 0 and f.t == 0.0
 
 
-def test_marg_step_method_returns_the_state_view(marg):
-    f = MargFilter(marg)
-    q = f.step(0.01, np.zeros(3), np.array([0.0, 0.0, 9.8]), np.array([20.0, 0.0, -40.0]))
-    assert q is f.x and not q.flags.writeable and f.step.calls == 1
-    f.step(dt=0.01, gyro=[0.0, 0.0, 0.1], acc=[0.0, 0.0, 9.8])              # mag omitted: zeros, in C
+def test_gradient_descent_step_takes_the_fast_path_and_refuses_a_bool(marg):
+    f = make_filter(marg)
+    assert f.step(0.0, 0.01, np.array([0.0, 0.0, 9.8, 20.0, 0.0, -40.0]), "marg", u=np.zeros(3)) == 0
+    assert f.step.calls == 1 and not f.x.flags.writeable
+    f.step(f.t, dt=0.01, z=np.array([0.0, 0.0, 9.8]), measurement="imu", u=np.array([0.0, 0.0, 0.1]))
     assert f.step.calls == 2
     with pytest.raises(ValueError):
-        f.step(0.01, [0.0, True, 0.0], [0.0, 0.0, 9.8])                    # a bool in a list: refused
+        f.step(f.t, 0.01, [0.0, 0.0, 9.8], "imu", u=[0.0, True, 0.0])       # a bool in a list: refused
     assert f.step.calls == 2 and f.fast_calls == 2
 
 

@@ -10,7 +10,7 @@ import pytest
 
 from symkf.runtime import load
 from symkf.scenarios.attitude.filter import attitude_filter
-from symkf.scenarios.marg.filter import MargFilter
+from symkf.scenarios.marg.filter import initial_orientation, make_filter
 from symkf.scenarios.launcher.truth import propagate, radar_track
 
 P0 = np.diag([10.0, 1e-4, 1e-4, 1000.0, 1e-5, 1e-5]) ** 2
@@ -59,12 +59,14 @@ def test_a_launcher_filter_s_copy_is_its_own(launcher_compiled, family, how):
 
 @pytest.mark.parametrize("how", COPIES)
 def test_a_madgwick_filter_s_copy_is_its_own(how):
-    f = MargFilter(load("marg", backend="compiled"), "full")
-    f.initialize([0.1, 0.2, 9.7], [20.0, 1.0, -40.0])
-    _check_copy(f, COPIES[how], lambda g: g.step(0.01, [0.1, -0.2, 0.3], [0.3, 0.2, 9.6], [21.0, 0.0, -40.0]))
-    clone, q = COPIES[how](f), f.q.copy()
-    clone.initialize([9.7, 0.0, 0.1], [0.0, 20.0, -40.0])   # its own initial-orientation call too
-    assert np.array_equal(f.q, q) and not np.array_equal(clone.q, q)
+    compiled = load("marg", backend="compiled")
+    f = make_filter(compiled, "full")
+    f.x = initial_orientation(compiled, [0.1, 0.2, 9.7, 20.0, 1.0, -40.0])
+    _check_copy(f, COPIES[how], lambda g: g.step(g.t, 0.01, np.array([0.3, 0.2, 9.6, 21.0, 0.0, -40.0]), "marg",
+                                                 u=np.array([0.1, -0.2, 0.3])))
+    clone, q = COPIES[how](f), f.x.copy()
+    clone.x = initial_orientation(compiled, [9.7, 0.0, 0.1, 0.0, 20.0, -40.0])
+    assert np.array_equal(f.x, q) and not np.array_equal(clone.x, q)
 
 
 @pytest.mark.parametrize("how", COPIES)
