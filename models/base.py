@@ -94,7 +94,7 @@ class Model:
     """A vehicle and its sensors, written once as CasADi SX expressions.
 
     Build one with ``Model(name, description, paper)``, declare symbols with :meth:`state`, :meth:`input`,
-    :meth:`param` and :meth:`noise`, then call :meth:`set_dynamics` and :meth:`add_measurement`.
+    :meth:`param` and :meth:`noise`, then call :meth:`set_dynamics` and :meth:`measurement`.
     """
 
     name: str
@@ -119,6 +119,9 @@ class Model:
     #: Stand-alone model functions to export besides the filters ("f", "fd", "jac_fd", "h",
     #: "jac_h"); a model whose filters use none of them may drop some to keep the C small.
     generic_kernels: tuple[str, ...] = ("f", "fd", "jac_fd", "h", "jac_h")
+    #: Named CasADi Functions a filter family asks the model for by a documented name (e.g. the
+    #: gradient-descent family's earth-field reference), beside the dynamics and measurements.
+    functions: dict = field(default_factory=dict)
     #: Equations (state names, measurement names) where the author allows non-differentiable
     #: operations on states (see :mod:`symkf.models.checks`).
     nondifferentiable_ok: set[str] = field(default_factory=set)
@@ -235,7 +238,7 @@ class Model:
         if not isinstance(derivatives, dict):
             raise ModelError(f"model '{self.name}': set_dynamics() takes a dict {{state name: d/dt expression}}, "
                              f"not a {type(derivatives).__name__}")
-        derivatives = self._expand_quaternions(derivatives)
+        derivatives = _expand_quaternions(self, derivatives)
         names = self.state_names()
         missing = [n for n in names if n not in derivatives]
         extra = [n for n in derivatives if n not in names]
@@ -252,20 +255,6 @@ class Model:
         self.nondifferentiable_ok |= set(allowed)
         self._check_free_symbols("dynamics", self.f, extra_allowed=[])
 
-    def _expand_quaternions(self, derivatives: dict) -> dict:
-        """{quaternion name: 4-vector} -> one entry per component state."""
-        expanded = dict(derivatives)
-        for qs in self.quaternions:
-            if qs.name not in expanded:
-                continue
-            value = expanded.pop(qs.name)
-            value = ca.SX(value) if not isinstance(value, ca.SX) else value
-            if value.shape != (4, 1):
-                raise ModelError(f"model '{self.name}': d{qs.name}/dt must be a 4-vector (scalar-last), "
-                                 f"got shape {value.shape}")
-            expanded.update({f"{qs.name}_{c}": value[i] for i, c in enumerate(QUATERNION_SUFFIXES)})
-        return expanded
-
     def set_discrete_step(self, next_states: dict[str, ca.SX], dt: ca.SX) -> None:
         """Declare the model's exact discrete step x_{k+1} = φ(t, x_k, u, p, w, dt), one expression per
         state name (a quaternion as one 4-vector), for inputs u and noises w held constant over the
@@ -276,7 +265,7 @@ class Model:
             raise ModelError(f"model '{self.name}': call set_dynamics() before set_discrete_step()")
         if not isinstance(dt, ca.SX) or not dt.is_symbolic() or dt.numel() != 1:
             raise ModelError(f"model '{self.name}': set_discrete_step() needs dt as a scalar SX symbol")
-        next_states = self._expand_quaternions(dict(next_states))
+        next_states = _expand_quaternions(self, dict(next_states))
         names = self.state_names()
         missing, extra = [n for n in names if n not in next_states], [n for n in next_states if n not in names]
         if missing or extra:
@@ -381,12 +370,7 @@ class Model:
             "params": [dict(v.as_dict(), default=d) for v, d in zip(self.params, self.param_defaults)],
             "noises": [v.as_dict() for v in self.noises],
             "events": [float(e) for e in self.events],
-            "measurements": {
-                m.name: {"outputs": [v.as_dict() for v in m.outputs], "params": [v.as_dict() for v in m.params],
-                         "sigma": m.sigma.tolist(), "wrap": list(m.wrap),
-                         **({"noise": [v.as_dict() for v in m.noise]} if m.noise else {}),
-                         **({"quaternion": True} if m.quaternion else {})}
-                for m in self.measurements.values()},
+            "measurements": {m.name: _describe_measurement(m) for m in self.measurements.values()},
             **({"quaternions": [qs.as_dict() for qs in self.quaternions], "error_state_dim": self.n_error}
                if self.quaternions else {}),
             **({"state_scaling": {"scale": list(self.state_scale), "offset": list(self.state_offset),
@@ -399,6 +383,28 @@ class Model:
     def has_scaling(self) -> bool:
         """True if any state declares a scale or an offset other than 1 and 0."""
         return any(s != 1.0 for s in self.state_scale) or any(o != 0.0 for o in self.state_offset)
+
+
+def _expand_quaternions(model: "Model", derivatives: dict) -> dict:
+    """{quaternion name: 4-vector} -> one entry per component state."""
+    expanded = dict(derivatives)
+    for qs in model.quaternions:
+        if qs.name not in expanded:
+            continue
+        value = expanded.pop(qs.name)
+        value = ca.SX(value) if not isinstance(value, ca.SX) else value
+        if value.shape != (4, 1):
+            raise ModelError(f"model '{model.name}': d{qs.name}/dt must be a 4-vector (scalar-last), "
+                             f"got shape {value.shape}")
+        expanded.update({f"{qs.name}_{c}": value[i] for i, c in enumerate(QUATERNION_SUFFIXES)})
+    return expanded
+
+
+def _describe_measurement(m: Measurement) -> dict:
+    return {"outputs": [v.as_dict() for v in m.outputs], "params": [v.as_dict() for v in m.params],
+            "sigma": m.sigma.tolist(), "wrap": list(m.wrap),
+            **({"noise": [v.as_dict() for v in m.noise]} if m.noise else {}),
+            **({"quaternion": True} if m.quaternion else {})}
 
 
 def _scaling(model: str, name: str, scale, offset) -> tuple[float, float]:

@@ -138,3 +138,19 @@ def test_no_import_cycle():
     cycles = _cycles(graph)
     assert not cycles, "import cycles (module-level and function-level imports):\n" + "\n".join(
         " <-> ".join(cycle) for cycle in cycles)
+
+
+#: Past these sizes a file or class is doing several jobs.
+MAX_FILE_LINES, MAX_CLASS_LINES = 600, 300
+
+
+def test_no_file_or_class_too_large_to_read():
+    too_large = []
+    for module, path in modules().items():
+        lines = path.read_text(encoding="utf-8").splitlines()
+        if len(lines) > MAX_FILE_LINES:
+            too_large.append(f"{path.relative_to(ROOT)}: {len(lines)} lines")
+        for node in ast.walk(ast.parse("\n".join(lines), str(path))):
+            if isinstance(node, ast.ClassDef) and node.end_lineno - node.lineno + 1 > MAX_CLASS_LINES:
+                too_large.append(f"{path.relative_to(ROOT)}: class {node.name} {node.end_lineno - node.lineno + 1} lines")
+    assert not too_large, f"over {MAX_FILE_LINES} lines a file or {MAX_CLASS_LINES} a class:\n" + "\n".join(too_large)

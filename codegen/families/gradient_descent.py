@@ -58,7 +58,7 @@ INITIAL_ORIENTATION = "initial_orientation"
 
 def check_model(model: Model) -> None:
     """ValueError (one line) unless ``model`` has what the family needs (module docstring)."""
-    functions = getattr(model, "functions", {})
+    functions = model.functions
     wanted = [m for m in MEASUREMENTS if m in model.measurements]
     problems = []
     if model.nx != 4 or len(model.inputs) != 3 or [v.name for v in model.params] != ["beta", "alpha"]:
