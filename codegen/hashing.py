@@ -23,6 +23,7 @@ import casadi as ca
 
 from symkf.models import Model
 from .c_backend import makefile as c_makefile
+from .c_backend.template_util import templates_digest
 from .compilation import compiler_identity
 from .discretize import continuous_dynamics, measurement_function
 from .errors import BuildError
@@ -87,9 +88,12 @@ def generated_hash(model: Model, config: CodegenConfig) -> str:
     digest.update(continuous_dynamics(model).serialize().encode())
     for name in model.measurements:
         digest.update(measurement_function(model, name).serialize().encode())
+    for name in sorted(model.functions):
+        digest.update(name.encode() + model.functions[name].serialize().encode())
     facts = {"description": model.describe(), "filters": list(model.filters),
              "generic_kernels": list(model.generic_kernels), "config": asdict(config),
              "codegen": {m.__name__: _source_digest(m) for m in codegen_modules(model)},
+             "templates": templates_digest(),
              "symkf": symkf_version(), "casadi": ca.__version__}
     digest.update(json.dumps(facts, sort_keys=True, default=str).encode())
     return digest.hexdigest()

@@ -397,3 +397,23 @@ def test_the_vm_backend_validates_the_model_once(tmp_path, write_model, monkeypa
     monkeypatch.setattr(Model, "validate", lambda self: validated.append(self.name) or original(self))
     assert load(str(write_model(tmp_path / "tracker.py")), backend="casadi-vm").backend.kind == "casadi-vm"
     assert validated == ["tiny"]
+
+
+def test_an_edit_of_a_c_template_changes_the_hash(tmp_path, write_model, monkeypatch):
+    """The static C and Make text lives in template files, not modules: the hash covers them too."""
+    import shutil
+    from symkf.codegen.c_backend import template_util
+    model = get_model(str(write_model(tmp_path / "tracker.py")))
+    config = make_config(model)
+    before = hashing.generated_hash(model, config)
+    copy = tmp_path / "backend"
+    shutil.copytree(Path(template_util.__file__).parent / "templates", copy / "templates")
+    (copy / "templates" / "finite.c").write_text((copy / "templates" / "finite.c").read_text() + "/* edited */\n")
+    monkeypatch.setattr(template_util.resources, "files", lambda package: copy)
+    template_util.templates_digest.cache_clear()
+    try:
+        assert hashing.generated_hash(model, config) != before
+    finally:
+        monkeypatch.undo()
+        template_util.templates_digest.cache_clear()
+    assert hashing.generated_hash(model, config) == before
