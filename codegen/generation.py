@@ -21,7 +21,7 @@ from .c_backend.names import check_c_names
 from .compilation import UnitCompiler, compile_flags, compiler_identity, unit_optimization
 from .errors import BuildError
 from .hashing import symkf_version
-from .families.framework import FAMILIES, LONG_COMPILE, model_kernels
+from .families.framework import FAMILIES, LONG_COMPILE, check_quaternions, model_kernels
 from .model_functions import ModelFunctions, Symbols
 from .scaling import model_for
 from .spec import Bundle, CodegenConfig
@@ -53,6 +53,18 @@ def generate(model, config: CodegenConfig | None = None) -> Bundle:
     return generate_validated(model, config or default_config(model))
 
 
+def check_families(model: Model) -> None:
+    """Every family the model asks for exists, and none would treat a quaternion state as a
+    vector unless the model says so (:func:`~symkf.codegen.families.framework.check_quaternions`)."""
+    for family in model.filters:
+        if family not in FAMILIES:
+            raise BuildError(f"model '{model.name}' asks for filter family '{family}'; known: {sorted(FAMILIES)}")
+    try:
+        check_quaternions(model)
+    except ValueError as exc:
+        raise BuildError(str(exc)) from None
+
+
 def generate_validated(model: Model, config: CodegenConfig, on_part=None) -> Bundle:
     """:func:`generate` of a Model :func:`~symkf.models.get_model` returned (not validated again:
     the build and the runtime's VM backend have it). The kernels are made
@@ -63,9 +75,7 @@ def generate_validated(model: Model, config: CodegenConfig, on_part=None) -> Bun
     if set(model.filters) <= EQUATION_ONLY_FAMILIES:
         check_parameters_used(model)
     model = model_for(model, config)
-    for family in model.filters:
-        if family not in FAMILIES:
-            raise BuildError(f"model '{model.name}' asks for filter family '{family}'; known: {sorted(FAMILIES)}")
+    check_families(model)
     symbols, functions = Symbols(model), ModelFunctions(model, config)
     own = model_kernels(model, symbols, functions)
     if on_part is not None:
@@ -97,7 +107,8 @@ def write_bundle(bundle: Bundle, directory: Path, key: str, generated: str, cc: 
             (directory / file).write_text(text)
     (directory / f"{name}.h").write_text(c_header.header(bundle, key, cc, " ".join(compile_flags(bundle.config))))
     own = {file: flags for file in sources if (flags := unit_optimization(bundle.config, file)) != bundle.config.optimization}
-    (directory / "Makefile").write_text(c_makefile.makefile(name, bundle.config.optimization, list(sources), own))
+    (directory / "Makefile").write_text(c_makefile.makefile(name, bundle.config.optimization, list(sources), own,
+                                                                    bundle.description.get("source", "")))
     manifest = {"model": name, "content_hash": key, "generated_hash": generated,
                 "symkf_version": symkf_version(), "casadi_version": ca.__version__,
                 "compiler": cc, "compiler_identity": compiler_identity(cc), "flags": c_makefile.STRICT_FLAGS,

@@ -30,7 +30,7 @@ from .c_backend import units as c_units
 from .build_folders import folder_name, private_root
 from .compilation import UnitCompiler, compile_bundle, compiler, unit_optimization
 from .errors import BuildError, CompilerNotFound
-from .generation import config_for, generate_validated, write_bundle
+from .generation import check_families, config_for, generate_validated, write_bundle
 from .hashing import content_hash, generated_hash
 from .manifest import read_manifest, verified_manifest
 from .spec import Bundle
@@ -102,6 +102,7 @@ def build_validated(model: Model, force: bool = False, start: float | None = Non
     start = time.perf_counter() if start is None else start
     config = config_for(model, **overrides)
     unit_optimization(config)                                   # a bad per-unit option: refused before any work
+    check_families(model)                                       # also for a cached build (not regenerated)
     timings = {}
     root = private_root()
     directory = root / folder_name(model, config)

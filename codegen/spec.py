@@ -106,12 +106,21 @@ class Kernel:
     def input_index(self, name: str) -> int:
         return [a.name for a in self.inputs].index(name)
 
+    def ignores(self) -> list[str]:
+        """Of the inputs a caller might forget (``u``), those no output but ``status`` depends on
+        (an update whose h does not read the input): the runtime does not ask for them."""
+        outputs = [a.name for a in self.outputs[:-1]]
+        names = [a.name for a in self.inputs]
+        return [name for name in ("u",) if name in names and outputs
+                and not any(self.function.which_depends(name, outputs, 1, True))]
+
     def as_dict(self) -> dict:
         f = self.function
         return {"name": self.name, "doc": self.doc,
                 "inputs": [a.as_dict() for a in self.inputs],
                 "outputs": [a.as_dict() for a in self.outputs],
                 "carried": list(self.carried), "per_step": list(self.per_step), "trusted": self.trusted,
+                "ignores": self.ignores(),
                 "work": {"arg": f.sz_arg(), "res": f.sz_res(), "iw": f.sz_iw(), "w": f.sz_w()},
                 "instructions": f.n_instructions()}
 

@@ -100,10 +100,11 @@ def _from_file(path: Path, package: str | None, display: str | None = None) -> M
         sys.modules.pop(unique, None)
         if added and folder in sys.path:
             sys.path.remove(folder)
-    return _call_build(module, display, source)
+    origin = "" if package == __name__ else display if package else str(path.resolve())
+    return _call_build(module, display, source, origin)
 
 
-def _call_build(module: types.ModuleType, display: str, source: bytes | None = None) -> Model:
+def _call_build(module: types.ModuleType, display: str, source: bytes | None = None, origin: str | None = None) -> Model:
     build = getattr(module, "build", None)
     if not callable(build):
         raise ModelError(f"{display} defines no build() returning a Model")
@@ -114,6 +115,8 @@ def _call_build(module: types.ModuleType, display: str, source: bytes | None = N
         raise ModelError(f"{display}: build() returned a {type(model).__name__}, expected a symkf Model")
     if source is not None and not model.constants:
         model.constants = module_constants(module, source)
+    if not model.source:
+        model.source = display if origin is None else origin     # a module: its name; a file: its path
     return model.validate()
 
 

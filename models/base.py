@@ -127,6 +127,10 @@ class Model:
     nondifferentiable_ok: set[str] = field(default_factory=set)
     #: Unit-quaternion states (:meth:`quaternion_state`), in declaration order.
     quaternions: list[QuaternionState] = field(default_factory=list)
+    #: Families without a quaternion chart ("ekf", ...) generated anyway, on purpose: they treat each quaternion as 4 states.
+    quaternion_as_vector_families: tuple[str, ...] = ()
+    #: A user's model's file or module (set by ``get_model``; "" for a paper model), named by the generated files.
+    source: str = ""
     #: Per state: the scale and offset of the scaled state x~ = (x - offset) / scale that scaled
     #: builds work on (:meth:`state`; codegen/scaling.py). Default 1 and 0.
     state_scale: list[float] = field(default_factory=list)
@@ -377,6 +381,7 @@ class Model:
                                   "kernels_use_scaled_state": self.scaled_state}} if self.has_scaling else {}),
             **({"constants": [{"name": n, "value": v, "comment": c} for n, v, c in self.constants]}
                if self.constants else {}),
+            **({"source": self.source} if self.source else {}),
         }
 
     @property

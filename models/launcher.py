@@ -292,9 +292,9 @@ def build() -> Model:
     # Table 2's switches of thrust, mass and area: no integrator step straddles one
     m.events = (T_STAGE1_BURNOUT, T_FAIRING, T_STAGE2_IGNITION, T_INSERTION)
     # -O1: measured (callgrind, gcc 12) 2-4 % more instructions per EKF/UKF predict than -O3, for
-    # half the compile time of -O2/-O3 (the model author's edit -> loaded filter loop, issue 9).
+    # half the compile time of -O2/-O3 (the model author's edit -> loaded filter loop).
     # -O3 for the glue a dynamics edit does not recompile (the API unit, the filter kernels, the event
-    # dispatchers of f_d): 1,200 fewer instructions per EKF step, 800 per UKF step (issue 12), the same
+    # dispatchers of f_d): 1,200 fewer instructions per EKF step, 800 per UKF step, the same
     # numbers (IEEE semantics, -std=c99 keeps floating-point contraction off). -fno-thread-jumps for the
     # model's functions: GCC's jump threading copies CasADi's "arg ? arg[k] : 0" loads, and sin and cos
     # of one copy each are then not merged into one sincos call (250 instructions per step; the kernels
@@ -307,7 +307,7 @@ def build() -> Model:
 
 #: C units compiled at -O3 (codegen option ``unit_optimization``): the public API, the EKF/UKF kernels
 #: and the small functions that pick an event branch of f_d (their text does not change when f or h
-#: is edited: the model author's edit loop, issue 9, still compiles f_d's own units at -O1).
+#: is edited: the model author's edit loop, still compiles f_d's own units at -O1).
 GLUE_UNITS = ("*_api.c", "*_k_ekf_*.c", "*_k_ukf_*.c", "*_fn_fd_and_jac.c", "*_fn_fd_and_jac_plain.c",
               "*_fn_fd_and_jac_branch.c", "*_fn_fd_and_jac_split.c", "*_fn_fd_sigma.c", "*_fn_fd_sigma_branch.c")
 

@@ -18,10 +18,12 @@ import time
 from symkf.codegen import CompilerNotFound, FilterSpec, build_validated, config_for, generate_validated
 from symkf.models import get_model
 from .backends import CompiledBackend, StaleLibraryError, SymkfError, VirtualMachineBackend
+from .contract import DEFAULT_GATE_PROBABILITY
 from .filters import Filter
-from .runs import RunResult
+from .runs import RunRefused, RunResult
 
-__all__ = ["CompiledModel", "Filter", "RunResult", "StaleLibraryError", "SymkfError", "load"]
+__all__ = ["CompiledModel", "DEFAULT_GATE_PROBABILITY", "Filter", "RunRefused", "RunResult", "StaleLibraryError",
+           "SymkfError", "load"]
 
 
 class CompiledModel:
@@ -36,17 +38,19 @@ class CompiledModel:
         self.build = build
 
     def filter(self, name: str, x0, P0=None, Q=None, **options) -> Filter:
-        """The generated filter ``name`` (see ``self.filters``); options as :class:`Filter`."""
+        """The generated filter ``name`` (see ``self.filters``); x0, P0, Q and the options (R, p,
+        gate, t0, scalars such as kappa) as :class:`Filter`, which says what P0 and Q mean for
+        each family (the state's covariance, or a manifold filter's error-state chart)."""
         if name not in self.filters:
             raise ValueError(f"model '{self.name}' has no '{name}' filter; it has {sorted(self.filters)}")
         return Filter(self, name, x0, P0, Q, **options)
 
     def ekf(self, x0, P0, Q, **options) -> Filter:
-        """Extended Kalman filter (Joseph-form update). Options: R, p, gate."""
+        """Extended Kalman filter (Joseph-form update). Options: R, p, gate, t0 (:class:`Filter`)."""
         return self.filter("ekf", x0, P0, Q, **options)
 
     def ukf(self, x0, P0, Q, kappa: float = 0.0, **options) -> Filter:
-        """Unscented Kalman filter, Julier sigma points with ``kappa``. Options: R, p, gate."""
+        """Unscented Kalman filter, Julier sigma points with ``kappa``. Options: R, p, gate, t0."""
         return self.filter("ukf", x0, P0, Q, kappa=kappa, **options)
 
 

@@ -7,7 +7,7 @@
  * (t, dt, array_0, ..., array_n-1):
  *
  *   1. checks every argument without writing anything: t, dt Python floats (numpy.float64 is
- *      one), finite, dt > 0 (t None: the clock's time); each array a native float64 1-D buffer
+ *      one), finite, dt > 0, t the clock's time (None: the clock's time); each array a native float64 1-D buffer
  *      (any stride, e.g. a row of a column-major matrix) of the slot's size with finite entries
  *      (a mask: exactly 0 or 1; a measurement z: finite where its mask uses it, as the kernel
  *      reads it), or None where the slot allows it;
@@ -43,6 +43,7 @@
 #define NPY_NO_DEPRECATED_API NPY_1_7_API_VERSION
 #include <numpy/arrayobject.h>
 #endif
+#include <float.h>
 #include <math.h>
 #include <stddef.h>
 #include <string.h>
@@ -250,6 +251,16 @@ static int trusted_step(Step *self) {
   return code;
 }
 
+/* Whether a step's t is the filter's time `clock`: within CLOCK_DT_RTOL of dt plus CLOCK_ULPS
+   roundings of the larger time (symkf/runtime/contract.py on_clock, the same numbers); a call
+   that is not is declined, and the Python path says by how much and how to move the clock. */
+#define CLOCK_DT_RTOL 1e-6
+#define CLOCK_ULPS 16.0
+static int on_clock(double t, double clock, double dt) {
+  double scale = fmax(1.0, fmax(fabs(t), fabs(clock)));
+  return fabs(t - clock) <= CLOCK_DT_RTOL * dt + CLOCK_ULPS * DBL_EPSILON * scale;
+}
+
 /* The checks, copies and kernel call of one step (argv: t, dt, then one object per slot): the
    status code (a new int), or None having written nothing (see the top of this file). */
 static PyObject *step_run(Step *self, PyObject *const *argv) {
@@ -259,6 +270,7 @@ static PyObject *step_run(Step *self, PyObject *const *argv) {
   if (argv[0] == Py_None && self->clock != NULL) t = *self->clock;
   else if (!finite_float(argv[0], &t)) Py_RETURN_NONE;
   if (!finite_float(argv[1], &dt) || !(dt > 0.0)) Py_RETURN_NONE;
+  if (self->clock != NULL && !on_clock(t, *self->clock, dt)) Py_RETURN_NONE;
   for (i = 0; i < self->n_slots; ++i) if (!accept(&self->slots[i], argv[2 + i], &inputs[i])) Py_RETURN_NONE;
   for (i = 0; i < self->n_slots; ++i)
     if (self->slots[i].check == CHECK_USED && !used_ok(self, i, inputs)) Py_RETURN_NONE;
@@ -442,7 +454,7 @@ typedef struct {
   PyObject *last_name;       /* the last name a call selected a Step by (held, so that its address is
                                 not reused) and that Step (borrowed from steps) */
   PyObject *last_step;
-  PyObject *default_step;    /* a Step */
+  PyObject *default_step;    /* a Step, or None: a call must name its measurement */
   int n_args;                /* 2 + the Steps' slot count */
   int arguments[2 + MAX_SLOTS];  /* per Step argument, the parameter that gives it (-1: None) */
   PyObject *result;          /* returned on success instead of the status code (None: the code) */
@@ -465,7 +477,7 @@ static int parameter(const Method *self, PyObject *name) {
 static Step *selected(Method *self, PyObject *const *values) {
   PyObject *name, *step;
   if (self->select_index < 0 || values[self->select_index] == NULL || values[self->select_index] == Py_None)
-    return (Step *) self->default_step;
+    return self->default_step == Py_None ? NULL : (Step *) self->default_step;   /* None: a name is required */
   name = values[self->select_index];
   if (name == self->last_name) return (Step *) self->last_step;      /* a call site's literal: the same object */
   if (!PyUnicode_CheckExact(name)) return NULL;
@@ -528,7 +540,7 @@ static int same_slots(PyObject *step, int n_slots) {
 
 /* Method(fallback, names, required, nan_index, select_index, steps, default_step, arguments, result). */
 static PyObject *method_new(PyTypeObject *type, PyObject *a, PyObject *kw) {
-  PyObject *fallback, *names, *steps, *default_step, *arguments, *result, *key, *value;
+  PyObject *fallback, *names, *steps, *default_step, *arguments, *result, *key, *value, *shape;
   int required, nan_index, select_index, n_slots;
   Py_ssize_t i, pos = 0;
   Method *self;
@@ -538,7 +550,11 @@ static PyObject *method_new(PyTypeObject *type, PyObject *a, PyObject *kw) {
   }
   if (!PyArg_ParseTuple(a, "OO!iiiOOO!O", &fallback, &PyTuple_Type, &names, &required, &nan_index, &select_index,
                         &steps, &default_step, &PyTuple_Type, &arguments, &result)) return NULL;
-  n_slots = PyObject_TypeCheck(default_step, &StepType) ? ((Step *) default_step)->n_slots : -1;
+  shape = default_step;                 /* None: every call names its Step (the slots of any of them) */
+  if (default_step == Py_None && select_index >= 0 && PyDict_Check(steps) && PyDict_GET_SIZE(steps) > 0)
+    PyDict_Next(steps, &pos, &key, &shape);
+  pos = 0;
+  n_slots = PyObject_TypeCheck(shape, &StepType) ? ((Step *) shape)->n_slots : -1;
   if (!PyCallable_Check(fallback) || n_slots < 0 || PyTuple_GET_SIZE(names) > MAX_PARAMS || required < 0 ||
       required > PyTuple_GET_SIZE(names) || nan_index >= PyTuple_GET_SIZE(names) ||
       select_index >= PyTuple_GET_SIZE(names) || (select_index >= 0) != PyDict_Check(steps) ||

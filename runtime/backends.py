@@ -46,18 +46,21 @@ class KernelInfo:
     carried: tuple[str, ...]
     per_step: tuple[str, ...]
     trusted: str = ""           # the run loop's trusted partner (codegen/spec.py Kernel.trusted)
+    ignores: tuple[str, ...] = ()   # inputs no output but status depends on (Kernel.ignores)
 
     @classmethod
     def from_manifest(cls, entry: dict) -> "KernelInfo":
         def args(items):
             return tuple((a["name"], tuple(a["shape"])) for a in items)
         return cls(entry["name"], args(entry["inputs"]), args(entry["outputs"]),
-                   tuple(entry["carried"]), tuple(entry["per_step"]), entry.get("trusted", ""))
+                   tuple(entry["carried"]), tuple(entry["per_step"]), entry.get("trusted", ""),
+                   tuple(entry.get("ignores", ())))
 
     @classmethod
     def from_kernel(cls, kernel: Kernel) -> "KernelInfo":
         return cls(kernel.name, tuple((a.name, a.shape) for a in kernel.inputs),
-                   tuple((a.name, a.shape) for a in kernel.outputs), kernel.carried, kernel.per_step, kernel.trusted)
+                   tuple((a.name, a.shape) for a in kernel.outputs), kernel.carried, kernel.per_step, kernel.trusted,
+                   tuple(kernel.ignores()))
 
     def pointer_names(self) -> list[tuple[str, bool]]:
         """(buffer name, is_output) in the C argument order (status excluded)."""
@@ -201,6 +204,7 @@ class VirtualMachineBackend:
         self.model = bundle.model_name
         self.functions = {k.name: k.function for k in bundle.kernels}
         self.kernels = {k.name: KernelInfo.from_kernel(k) for k in bundle.kernels}
+        self.config_extra = tuple(bundle.config.extra)       # the codegen options, as a manifest's
         if reason:
             warnings.warn(f"{reason}; evaluating '{self.model}' in CasADi's virtual machine "
                           "(same numbers, much slower)", RuntimeWarning, stacklevel=3)

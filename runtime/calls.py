@@ -14,6 +14,10 @@ from .backends import SymkfError
 from .buffers import fits
 
 
+#: ``gate="none"``: no innovation gate on any measurement (as a paper that fuses every update).
+NO_GATES = "none"
+
+
 def initialise(filt, x0, P0, Q, R: dict | None, p, gate: dict | None, scalars: dict) -> None:
     """x, P, Q, p, the kernels' scalar options (defaults from the spec), R per measurement
     (default diag(sigma^2) from the model) and the innovation gates of a new filter."""
@@ -33,25 +37,70 @@ def initialise(filt, x0, P0, Q, R: dict | None, p, gate: dict | None, scalars: d
     for name in spec.measurements:
         if "R" in filt.measurements[name]:
             filt.set_R(name, R[name] if name in R else np.diag(np.square(model["measurements"][name]["sigma"])))
-    for name, value in contract.known_keys("gate", gate, spec.measurements).items():
-        filt.set_gate(name, **(value if isinstance(value, dict) else {"probability": value}))
+    gate = dict.fromkeys(spec.measurements) if gate == NO_GATES else contract.known_keys("gate", gate, spec.measurements)
+    for name in spec.measurements:
+        if name in gate:
+            value = gate[name]
+            filt.set_gate(name, **(value if isinstance(value, dict) else {"probability": value}))
+        elif "gate" in filt.measurements[name]:
+            filt.set_gate(name, contract.DEFAULT_GATE_PROBABILITY)
+            filt._default_gates.add(name)
 
 
-def measurement_name(filt, measurement: str | None, kind: str) -> str:
-    """The measurement a ``kind`` ("update" or "step") call of ``filt`` names (None: its default)."""
-    name = filt._default if measurement is None else measurement
-    if name not in getattr(filt.spec, kind):
-        raise ValueError(f"measurement: '{name}' is not one of {list(getattr(filt.spec, kind))} "
-                         f"(filter '{filt.family}', {kind})")
-    return name
+def measurement_name(filt, measurement: str | None, kind: str, call: str | None = None) -> str:
+    """The measurement a ``kind`` ("update" or "step") call of ``filt`` names; None only where the
+    filter has one measurement (with several, z could be any of them: the caller must say)."""
+    names = list(getattr(filt.spec, kind))
+    if measurement is None:
+        if len(filt.spec.measurements) == 1 and names:
+            return names[0]
+        raise ValueError(f"measurement: model '{filt.model['name']}' has measurements {names}; name the one z "
+                         f"is, e.g. {_example(call or kind, names[0])}")
+    if measurement not in names:
+        raise ValueError(f"measurement: '{measurement}' is not one of {names} (filter '{filt.family}', {kind})")
+    return measurement
 
 
-def u_input(filt, u) -> np.ndarray | None:
-    """The checked input ``u`` of a call (None: the held one)."""
-    if u is None or "u" not in filt._buffers:
+def _example(kind: str, name: str) -> str:
+    return {"update": f"update(z, '{name}')", "step": f"step(t, dt, z, '{name}')",
+            "run": f"run(times, z, '{name}')", "run_steps": f"run_steps(dt, z, '{name}')"}.get(kind, f"'{name}'")
+
+
+#: The value of ``u`` that keeps the input of the previous call (said on purpose, never implied).
+HOLD = "hold"
+
+
+def has_inputs(filt) -> bool:
+    return "u" in filt._buffers and filt._buffers["u"].size > 0
+
+
+def reads_u(filt, kernel: str) -> bool:
+    """Whether compiled ``kernel`` of ``filt`` reads the input u (an update's h may not)."""
+    info = filt._backend.kernels[kernel]
+    return any(name == "u" for name, _ in info.inputs) and "u" not in info.ignores
+
+
+def u_input(filt, u, call: str, reads_u: bool = True) -> np.ndarray | None:
+    """The checked input ``u`` of a ``call`` (None: keep the held one, when the caller said
+    ``u="hold"`` or the call's kernel does not read u). A model with inputs needs u on every call
+    that propagates (predict, step, run): a forgotten u would otherwise propagate with zeros or a
+    stale sample. An update (``reads_u`` False) evaluates h at the end of the interval the last
+    call propagated over, with that call's input; before any input was given it needs u too."""
+    if not has_inputs(filt):
         if u is not None:
-            raise ValueError(f"u: filter '{filt.family}' has no inputs")
+            raise ValueError(f"u: model '{filt.model['name']}' has no inputs")
         return None
+    if isinstance(u, str) and u == HOLD:
+        if not (filt._u_given or filt.fast_calls):
+            raise ValueError(f"u: '{HOLD}' keeps the last input, but model '{filt.model['name']}' has been given "
+                             "none yet; pass u=... on this call")
+        return None
+    if u is None:
+        if not reads_u or (call == "update" and (filt._u_given or filt.fast_calls)):   # fast steps all gave u
+            return None
+        names = [f"{v['name']} [{v.get('unit', '-')}]" for v in filt.model["inputs"]]
+        raise ValueError(f"u: model '{filt.model['name']}' has inputs {names}; {call} needs u=... on every call "
+                         f"(u='hold' keeps the last input, now {filt._buffers['u'].tolist()})")
     return fits(filt._dtype, "u", contract.finite_array("u", u, filt._buffers["u"].shape))
 
 
@@ -104,6 +153,7 @@ def write_time(filt, t: float, dt: float | None, u) -> None:
         shared["dt"][0] = dt
     if u is not None:
         shared["u"][:] = u
+        filt._u_given = True
 
 
 def write_measurement(filt, name: str, values: dict) -> None:

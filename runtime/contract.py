@@ -3,7 +3,9 @@
 One function per kind of argument; each returns a clean float64 value or raises ``ValueError``
 naming the argument and what was wrong. Nothing here touches a filter's state.
 
-- real scalars: a number (not a string, bool or array), finite; ``dt`` > 0; ``t`` any finite time;
+- real scalars: a number (not a string, bool or array), finite; ``dt`` > 0;
+- time: the ``t`` of a call is the filter's clock (within a few roundings, :func:`on_clock`): a
+  jump or a step backwards is an error, never a silent gap;
 - arrays: numbers of exactly the declared shape (a bool inside a list or tuple is refused, not read as 0 or 1);
 - covariances: P and Q symmetric positive semi-definite, R symmetric positive definite, finite;
 - masks: exactly 0 or 1 everywhere;
@@ -41,6 +43,36 @@ def real(name: str, value) -> float:
     if not math.isfinite(result):
         raise ValueError(f"{name}: must be finite, got {result}")
     return result
+
+
+#: A call's t agrees with the filter's clock within CLOCK_DT_RTOL x dt plus CLOCK_ULPS roundings
+#: of the larger time: a caller's t0 + k dt and the clock's (t0 + (k-1) dt) + dt differ by a few
+#: roundings, a jump by much more. The C fast path (_fastcall.c on_clock) uses the same numbers.
+CLOCK_DT_RTOL = 1e-6
+CLOCK_ULPS = 16.0
+
+
+def is_on_clock(t: float, clock: float, dt: float = 0.0) -> bool:
+    """Whether time ``t`` is the clock's time (within the roundings above)."""
+    scale = max(1.0, abs(t), abs(clock))
+    return abs(t - clock) <= CLOCK_DT_RTOL * dt + CLOCK_ULPS * np.finfo(float).eps * scale
+
+
+def on_clock(value, clock: float, dt: float = 0.0, call: str = "step") -> float:
+    """The time ``value`` of a ``call`` if it is the filter's time ``clock``; ValueError naming both
+    times and how to move the clock on purpose otherwise."""
+    t = real("t", value)
+    if is_on_clock(t, clock, dt):
+        return t
+    if t > clock:
+        how = (f"to propagate over the gap, call predict({clock!r}, {t - clock!r}) first (or step with "
+               f"dt = {t - clock!r}); to restart the clock at {t!r} without propagating, set filter.t = {t!r}")
+    else:
+        how = (f"a filter does not step backwards; to restart at {t!r}, set filter.t = {t!r} "
+               "(and x, P for that time)")
+    side = "ahead of" if t > clock else "behind"
+    raise ValueError(f"t: {call} at t = {t!r}, but the filter's time is {clock!r} ({abs(t - clock):.6g} s {side} it); "
+                     f"{how} (t=None means the filter's time)")
 
 
 def time_step(value, allow_zero: bool = False) -> float:
@@ -125,6 +157,12 @@ def mask(value, shape: tuple[int, ...]) -> np.ndarray:
     if not np.isin(array, (0.0, 1.0)).all():
         raise ValueError(f"mask: entries must be exactly 0 or 1, got {np.unique(array).tolist()}")
     return array
+
+
+#: The innovation gate of a measurement the user set none for: a consistent filter refuses about
+#: one update in 10^9 (chi2(1) threshold 37.3, 6.1 sigma; chi2(3) 44.6), a gross outlier (a
+#: 1e30 m range) is refused with status SYMKF_GATED. ``gate={name: None}`` turns it off.
+DEFAULT_GATE_PROBABILITY = 1.0 - 1e-9
 
 
 def gate(probability, threshold, size: int) -> np.ndarray:

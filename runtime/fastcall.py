@@ -192,19 +192,20 @@ def method(function, owner, default, arguments: tuple, steps: dict | None = None
         function: the Python method (its parameters after ``self``: required ones first, every
             other one defaulting to None, except ``nan`` defaulting to "raise").
         owner: the filter.
-        default: the Step of a call that names no measurement.
+        default: the Step of a call that names no measurement (None: a call must name one; the
+            Python method says so).
         arguments: per argument of the Step (t, dt, then its slots), the name of the parameter
             that gives it, or None (the Step gets None: e.g. t, the filter's clock).
         steps, select: the Step of each measurement name, and the parameter naming it.
         result: returned by a call the Method took (e.g. the state view); None: the status code.
     """
     ext = extension()
-    if ext is None or default is None:
+    # names interned: a call's literal ("radar") is then found by identity, not by comparing text
+    steps = None if select is None else {sys.intern(name): s for name, s in steps.items() if s is not None}
+    if ext is None or (default is None and not steps):
         return None
     names, required = _parameters(function)
     index = {name: i for i, name in enumerate(names)}
-    # names interned: a call's literal ("radar") is then found by identity, not by comparing text
-    steps = None if select is None else {sys.intern(name): s for name, s in steps.items() if s is not None}
     return ext.Method(function.__get__(owner), names, required, index.get("nan", -1),
                       -1 if select is None else index[select], steps, default,
                       tuple(-1 if a is None else index[a] for a in arguments), result)

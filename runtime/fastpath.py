@@ -28,9 +28,9 @@ from .contract import read_only
 
 #: The array arguments of ``Filter.step`` in the order its fast path takes them.
 ARGUMENTS = ("z", "q", "mask", "u")
-#: What the fast path writes for an omitted (None) array: a mask is all ones, an input ``u``
-#: keeps its held value; any other argument with values is required (the Python path says so).
-IF_NONE = {"mask": "ones", "u": "keep"}
+#: What the fast path writes for an omitted (None) array: a mask is all ones; any other argument
+#: with values (z, q, an input ``u``) is required: the Python path says so, or holds ``u="hold"``.
+IF_NONE = {"mask": "ones"}
 #: How the fast path checks an array: a mask is exactly 0 or 1; z must be finite where the
 #: mask uses it (the kernel never reads a masked component; the Python path accepts a NaN
 #: there too); anything else finite.

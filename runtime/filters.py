@@ -25,26 +25,51 @@ import numpy as np
 from symkf.codegen.spec import FilterSpec
 from . import calls, contract, runs
 from .buffers import fits, kernel_roles, make_buffers
-from .contract import covariance, read_only
+from .contract import DEFAULT_GATE_PROBABILITY, read_only
 from .fastpath import FastPath
+from .filter_state import FilterState
 from .runs import RunResult
 from .state_scaling import StateScaling
 
 
-class Filter:
+__all__ = ["DEFAULT_GATE_PROBABILITY", "Filter"]
+
+
+class Filter(FilterState):
     """A generated filter (EKF, UKF, continuous-discrete EKF, ...) of one compiled model.
 
     Args:
         compiled: a :class:`~symkf.runtime.CompiledModel`.
         spec: the filter's name in the manifest (``compiled.filters``) or its FilterSpec.
-        x0, P0: initial state and covariance (P0 symmetric positive semi-definite).
-        Q: process-noise power spectral density, symmetric PSD: n x n, additive (discrete noise
-            Q dt), or, for a model that declares noise(), nw x nw of its noises w (discrete noise
-            G Q G^T dt, G = df/dw at the step start; see codegen/families/kalman.py).
+        x0: initial state, the model's states in declaration order and units (a quaternion state
+            as its 4 scalar-last components, unit norm).
+        P0: initial covariance (symmetric positive semi-definite), in the filter's chart
+            (``filter.chart`` says which): for "ekf", "ukf", "cd_ekf" the n x n covariance of x
+            itself; for the manifold filters ("mekf", "mukf", "sukf", "aukf") the covariance of
+            the error state, n - 1 per quaternion square: each quaternion's 4 components are one
+            3-vector rotation error in the build's chart (codegen option ``manifold_chart``):
+            "rotation_vector" (the default: rad, the small angle about each axis) or
+            "vector_part" (paper 000, models/attitude.py: the error quaternion's vector part,
+            |dp| = sin(angle / 2), half the angle: a P0 given in rad^2 of rotation angle is 4x
+            too large in this chart).
+        Q: process-noise power spectral density, symmetric PSD, in the same chart as P0: n x n
+            (error-state for manifold filters), additive (discrete noise Q dt), or, for a model
+            that declares noise(), nw x nw of its noises w (discrete noise G Q G^T dt, G = df/dw at
+            the step start; see codegen/families/kalman.py).
         R: {measurement: covariance} (symmetric PD); default diag(sigma^2) from the model.
         p: runtime parameters (default: the model's defaults).
-        gate: {measurement: probability in (0, 1) or {"threshold": value}} chi-square gates.
+        gate: {measurement: probability in (0, 1), {"threshold": value} or None (no gate)}
+            chi-square innovation gates, or "none" (no gate at all); a measurement not given
+            gets the default gate,
+            :data:`DEFAULT_GATE_PROBABILITY` (a consistent filter refuses about one update in
+            10^9; a gross outlier, e.g. a range of 1e30 m, is refused, status SYMKF_GATED).
+        t0: the filter's time at x0 (its clock; every call's t must agree with it).
         **scalars: scalar inputs of the kernels, e.g. ``kappa`` (defaults from the spec).
+
+    A model with several measurements needs the measurement named on every ``update``/``step``/
+    ``run``; a model with inputs needs ``u`` on every call that reads it (``u="hold"`` keeps the
+    last input on purpose); a call's ``t`` must be the filter's time (None: that time). Every call
+    that raises leaves x, P and t as they were.
 
     ``step(t, dt, z, q=...)`` with float64 arrays of the right shape takes a fast path: the
     contract's checks, the copies and the kernel call in one C call (:mod:`symkf.runtime.fastcall`);
@@ -52,7 +77,7 @@ class Filter:
     """
 
     def __init__(self, compiled, spec, x0, P0=None, Q=None, R: dict | None = None, p=None,
-                 gate: dict | None = None, **scalars):
+                 gate: dict | None = None, t0: float = 0.0, **scalars):
         self.spec: FilterSpec = compiled.filters[spec] if isinstance(spec, str) else spec
         self.family = self.spec.name
         self.model = compiled.model
@@ -65,9 +90,12 @@ class Filter:
         self._fast = FastPath(self)         # its data made with the buffers, its calls bound by _bind
         self.n = self._buffers["x"].size
         self._views = {name: read_only(self._buffers[name]) for name in ("x", "P") if name in self._buffers}
+        self._default_gates: set[str] = set()    # measurements gated by DEFAULT_GATE_PROBABILITY
+        self._u_given = False                    # whether any call gave u (an update may then hold it)
         calls.initialise(self, x0, P0, Q, R, p, gate, scalars)
-        self.t = 0.0
-        self._default = self.spec.measurements[0]
+        self.t = t0
+        # the measurement of a call that names none: only a filter with one has it
+        self._default = self.spec.measurements[0] if len(self.spec.measurements) == 1 else None
         self._bind()
 
     # ------------------------------------------------------------------ copies
@@ -111,12 +139,13 @@ class Filter:
 
     @property
     def t(self) -> float:
-        """The filter's time: the end of its last step (or as set)."""
+        """The filter's time: the end of its last step (or as set). Setting it restarts the clock
+        there without propagating (e.g. after re-initialising x and P for that time)."""
         return float(self._clock[0])
 
     @t.setter
     def t(self, value) -> None:
-        self._clock[0] = contract.real("t", value)
+        self._clock[0] = fits(self._dtype, "t", contract.real("t", value))
 
     @property
     def fast_calls(self) -> int:
@@ -127,7 +156,7 @@ class Filter:
     def fast_path(self) -> bool:
         """Whether plain ``step`` calls take the C fast path. Set False to send every call through
         the Python contract (same results; for comparisons), True to restore it."""
-        return self._fast.default is not None
+        return any(step is not None for step in self._fast.steps.values())
 
     @fast_path.setter
     def fast_path(self, on: bool) -> None:
@@ -147,122 +176,26 @@ class Filter:
         for benchmarks that time the C call alone. Returns a callable giving the status code."""
         if kind == "predict":
             return self._calls[self.spec.predict]
-        return self._calls[getattr(self.spec, kind)[measurement or self._default]]
-
-    # ------------------------------------------------------------------ state and settings
-    @property
-    def x(self) -> np.ndarray:
-        """The state estimate (a read-only view of the buffer the C code writes; a read-only
-        physical copy for a scaled build)."""
-        if self._scaling is None:
-            return self._views["x"]
-        return read_only(self._scaling.x_from_kernel(self._buffers["x"]))
-
-    @x.setter
-    def x(self, value) -> None:
-        x = contract.finite_array("x", value, self._buffers["x"].shape)
-        x = contract.unit_quaternions("x", x, self.model.get("quaternions", []))
-        self._write_state("x", x if self._scaling is None else self._scaling.x_to_kernel(x))
-
-    @property
-    def P(self) -> np.ndarray:
-        """The covariance (read-only view, or physical copy for a scaled build); set it with a
-        symmetric PSD matrix."""
-        if self._scaling is None:
-            return self._views["P"]
-        return read_only(self._scaling.P_from_kernel(self._buffers["P"]))
-
-    @P.setter
-    def P(self, value) -> None:
-        P = covariance("P", value, self._buffers["P"].shape[0])
-        self._write_state("P", P if self._scaling is None else self._scaling.P_to_kernel(P))
-
-    @property
-    def Q(self) -> np.ndarray:
-        Q = self._buffers["Q"]
-        return read_only(Q if not self._scales_Q else self._scaling.P_from_kernel(Q))
-
-    @Q.setter
-    def Q(self, value) -> None:
-        Q = covariance("Q", value, self._buffers["Q"].shape[0])
-        self._write_state("Q", Q if not self._scales_Q else self._scaling.P_to_kernel(Q))
-
-    @property
-    def _scales_Q(self) -> bool:
-        return self._scaling is not None and self._scaling.scales_Q
-
-    def _write_state(self, name: str, value: np.ndarray) -> None:
-        """Write a checked value; for a float build refuse one that float cannot hold (buffer unchanged)."""
-        value = fits(self._dtype, name, value, " after scaling" if self._scaling is not None else "")
-        self._fast.before_write()
-        self._buffers[name][:] = value
-
-    @property
-    def p(self) -> np.ndarray:
-        return read_only(self._buffers["p"])
-
-    @p.setter
-    def p(self, value) -> None:
-        value = fits(self._dtype, "p", contract.finite_array("p", value, self._buffers["p"].shape))
-        self._fast.before_write()
-        self._buffers["p"][:] = value
-
-    def R(self, measurement: str | None = None) -> np.ndarray:
-        return read_only(self._measurement(measurement)["R"])
-
-    def set_R(self, measurement: str, value) -> None:
-        """Measurement noise covariance (symmetric positive definite)."""
-        buffers = self._measurement(measurement)
-        name = f"R[{measurement}]"
-        value = fits(self._dtype, name, covariance(name, value, buffers["R"].shape[0], definite=True))
-        self._fast.before_write()
-        buffers["R"][:] = value
-
-    def set_gate(self, measurement: str, probability: float | None = None, threshold: float | None = None) -> None:
-        """Chi-square innovation gate: an update whose y^T S^-1 y exceeds the ``probability``
-        quantile of chi2(k) (k = used components), or ``threshold``, is skipped (state unchanged,
-        status SYMKF_GATED). Neither given: no gate (the default)."""
-        buffers = self._measurement(measurement)
-        if "gate" not in buffers:
-            raise ValueError(f"gate: filter '{self.family}' has no innovation gate")
-        gate = contract.gate(probability, threshold, buffers["gate"].size)
-        self._fast.before_write()
-        buffers["gate"][:] = gate
-
-    def y(self, measurement: str | None = None) -> np.ndarray:
-        """Innovation of the last update with ``measurement``."""
-        return self._diagnostic("y", measurement)
-
-    def S(self, measurement: str | None = None) -> np.ndarray:
-        """Innovation covariance of the last update with ``measurement``."""
-        return self._diagnostic("S", measurement)
-
-    def _diagnostic(self, key: str, measurement: str | None) -> np.ndarray:
-        name = self._default if measurement is None else measurement
-        self._measurement(name)
-        return self._fast.diagnostic(key, name)
-
-    def _measurement(self, name: str | None) -> dict[str, np.ndarray]:
-        name = self._default if name is None else name
-        if name not in self.measurements:
-            raise ValueError(f"measurement: '{name}' is not one of {list(self.measurements)}")
-        return self.measurements[name]
+        return self._calls[getattr(self.spec, kind)[calls.measurement_name(self, measurement, kind)]]
 
     # ------------------------------------------------------------------ steps
-    def predict(self, t: float, dt: float, u=None) -> None:
-        """Propagate from time t to t + dt."""
+    def predict(self, t: float | None, dt: float, u=None) -> None:
+        """Propagate from time t (the filter's time, or None for it) to t + dt with input u."""
         if not self.spec.predict:
             raise ValueError(f"predict: filter '{self.family}' only steps (it has no separate prediction)")
-        t, dt, u = contract.real("t", t), contract.time_step(dt), calls.u_input(self, u)
+        dt = contract.time_step(dt)
+        t = self.t if t is None else contract.on_clock(t, self.t, dt, "predict")
+        u = calls.u_input(self, u, "predict")
         calls.write_time(self, t, dt, u)
         calls.check(self, self._calls[self.spec.predict](), "predict")
         self.t = t + dt
 
     def update(self, z, measurement: str | None = None, q=None, mask=None, t: float | None = None,
                u=None, nan: str = "raise") -> int:
-        """Update with measurement z taken at time t (default: the filter's time).
+        """Update with measurement z taken at the filter's time (``t``, if given, must be it).
 
         Args:
+            measurement: its name (required when the model has more than one).
             q: the measurement's runtime parameters (required when it has any).
             mask: 1/0 per component; 0 ignores that component.
             nan: "raise" (a NaN/Inf component is an error) or "mask" (it is skipped).
@@ -271,16 +204,18 @@ class Filter:
         """
         name = calls.measurement_name(self, measurement, "update")
         values = calls.measurement_values(self, name, {"z": z, "q": q, "mask": mask}, nan)
-        t = self.t if t is None else contract.real("t", t)
-        u = calls.u_input(self, u)
+        t = self.t if t is None else contract.on_clock(t, self.t, 0.0, "update")
+        u = calls.u_input(self, u, "update", calls.reads_u(self, self.spec.update[name]))
         calls.write_time(self, t, None, u)
         calls.write_measurement(self, name, values)
         return calls.check(self, self._calls[self.spec.update[name]](), f"update '{name}'", name)
 
     def step(self, t: float, dt: float, z, measurement: str | None = None, q=None, mask=None,
              u=None, nan: str = "raise") -> int:
-        """predict(t, dt) then update(z) at t + dt — one call into the compiled code. Returns 0
-        or SYMKF_GATED (prediction applied, update refused by the gate)."""
+        """predict(t, dt) then update(z) at t + dt — one call into the compiled code. t is the
+        filter's time (None: that time); the measurement's name is required when the model has
+        several, u when it has inputs. Returns 0 or SYMKF_GATED (prediction applied, update
+        refused by the gate)."""
         paths = self._fast
         fast = paths.default if measurement is None else paths.steps.get(measurement) if type(measurement) is str else None
         if fast is not None and nan == "raise":
@@ -289,8 +224,9 @@ class Filter:
                 return code
         name = calls.measurement_name(self, measurement, "step")
         values = calls.measurement_values(self, name, {"z": z, "q": q, "mask": mask}, nan)
-        t = self.t if t is None else contract.real("t", t)
-        dt, u = contract.time_step(dt), calls.u_input(self, u)
+        dt = contract.time_step(dt)
+        t = self.t if t is None else contract.on_clock(t, self.t, dt, "step")
+        u = calls.u_input(self, u, "step")
         calls.write_time(self, t, dt, u)
         calls.write_measurement(self, name, values)
         code = calls.check(self, self._calls[self.spec.step[name]](), f"step '{name}'", name)
@@ -299,25 +235,35 @@ class Filter:
 
     # ------------------------------------------------------------------ whole runs
     def run(self, times, z, measurement: str | None = None, q=None, mask=None, u=None,
-            nan: str = "raise") -> RunResult:
+            nan: str = "raise", refused: str = "raise") -> RunResult:
         """Filter a whole record in one compiled call: step k predicts from times[k-1] to times[k]
-        (the first step has dt = 0) and updates with z[k]. The filter's x, P and t end at the last
-        step. A step that fails keeps the state and records its code in ``status``.
+        (step 0 from the filter's time, dt = 0 if times[0] is that time) and updates with z[k].
+        The filter's x, P and t end at the last step.
 
         Args:
-            times: (N,) strictly increasing; z: (N, m); q: (N, nq) or (nq,); mask: (N, m) or None;
-            u: (N, nu) or (nu,) or None (the current input held).
+            times: (N,) strictly increasing, times[0] not before the filter's time; z: (N, m);
+            measurement: its name (required when the model has more than one);
+            q: (N, nq) or (nq,); mask: (N, m) or None;
+            u: (N, nu) or (nu,) (required when the model has inputs; "hold": the current input);
+            refused: "raise" (default): if any step is refused (a SYMKF_ERR_* code: that step kept
+                the state while time went on), raise :class:`~symkf.runtime.runs.RunRefused` with
+                the run's result attached and leave the filter as it was; "continue": return the
+                result, whose ``refused_steps`` and ``counts`` (shown by its repr) say which.
         """
-        name = calls.measurement_name(self, measurement, "step")
+        name = calls.measurement_name(self, measurement, "step", "run")
         times = contract.run_times(times)
-        per_step = {"t": np.concatenate([times[:1], times[:-1]]), "dt": np.diff(times, prepend=times[:1])}
-        return runs.run(self, name, per_step, {"z": z, "q": q, "mask": mask}, u, nan)
+        start = self.t
+        if times.size and (times[0] < start or contract.is_on_clock(times[0], start)):
+            start = contract.on_clock(times[0], start, 0.0, "run (its first time)")   # dt = 0: an update first
+        per_step = {"t": np.concatenate([[start], times[:-1]]), "dt": np.diff(times, prepend=start)}
+        runs.warn_long_first_step(self, times, per_step["dt"])
+        return runs.run(self, name, per_step, {"z": z, "q": q, "mask": mask}, u, nan, refused)
 
     def run_steps(self, dt, z, measurement: str | None = None, q=None, mask=None, u=None,
-                  nan: str = "raise") -> RunResult:
+                  nan: str = "raise", refused: str = "raise") -> RunResult:
         """:meth:`run` given step lengths from the filter's time: step k predicts over dt[k] (> 0;
         the first may be 0) and updates with z[k]; arguments as :meth:`run`."""
-        name = calls.measurement_name(self, measurement, "step")
+        name = calls.measurement_name(self, measurement, "step", "run_steps")
         dt = contract.run_steps(dt)
         per_step = {"t": self.t + np.concatenate([[0.0], np.cumsum(dt)])[:-1], "dt": dt}
-        return runs.run(self, name, per_step, {"z": z, "q": q, "mask": mask}, u, nan)
+        return runs.run(self, name, per_step, {"z": z, "q": q, "mask": mask}, u, nan, refused)

@@ -4,27 +4,52 @@ loop (the generated C ``<kernel>_run`` or, on the CasADi-VM backend, the same ke
 step) and its :class:`RunResult`."""
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
 
-from symkf.codegen.spec import STATUS_GATED
-from . import contract
+from symkf.codegen.spec import STATUS_CODES, STATUS_GATED
+from . import calls, contract
+from .backends import SymkfError
 from .buffers import buffer, fits
+
+#: What a run does when a step is refused (a SYMKF_ERR_* code: the state kept, time advanced):
+#: "raise" (the default: :class:`RunRefused`, the filter as before the run) or "continue".
+REFUSED_POLICIES = ("raise", "continue")
 
 
 @dataclass
 class RunResult:
-    """A whole run: the state (and covariance) after every step and each step's status code."""
+    """A whole run: the state (and covariance) after every step and each step's status code.
+    ``refused_steps`` / ``counts`` say which steps failed and how; ``repr`` shows them."""
 
     x: np.ndarray                  # (N, n)
     P: np.ndarray | None           # (N, n, n), None for a filter without covariance
     status: np.ndarray             # (N,) int: 0, SYMKF_GATED or a SYMKF_ERR_* code
 
+    def __repr__(self) -> str:
+        shape = f"{self.x.shape[0]} steps x {self.x.shape[1]} states"
+        counts = ", ".join(f"{name}: {count}" for name, count in self.counts.items()) or "all OK"
+        refused = self.refused_steps
+        where = f"; refused steps {refused[:10].tolist()}{' ...' if refused.size > 10 else ''}" if refused.size else ""
+        return f"RunResult({shape}; {counts}{where})"
+
+    @property
+    def counts(self) -> dict[str, int]:
+        """Steps per status other than OK, by name (e.g. {"SYMKF_GATED": 2, "SYMKF_ERR_NOT_PD": 1})."""
+        codes, counts = np.unique(self.status[self.status != 0], return_counts=True)
+        return {STATUS_CODES.get(int(c), (f"code {int(c)}",))[0]: int(n) for c, n in zip(codes, counts)}
+
+    @property
+    def refused_steps(self) -> np.ndarray:
+        """Steps that failed (state kept, time advanced); gated steps are not failures."""
+        return np.flatnonzero((self.status != 0) & (self.status != STATUS_GATED))
+
     @property
     def failed_steps(self) -> np.ndarray:
-        """Steps that failed (state kept); gated steps are not failures."""
-        return np.flatnonzero((self.status != 0) & (self.status != STATUS_GATED))
+        """The same as :attr:`refused_steps`."""
+        return self.refused_steps
 
     @property
     def gated_steps(self) -> int:
@@ -59,11 +84,14 @@ def series(filt, name: str, n_steps: int, given: dict, u, nan: str) -> dict[str,
             result[key] = _held(key, value, n_steps, shape)
     shared = filt._buffers
     if "u" in shared:
-        result["u"] = _held("u", shared["u"] if u is None else u, n_steps, shared["u"].shape)
+        held = u is None or (isinstance(u, str) and u == calls.HOLD)
+        if held:
+            calls.u_input(filt, u, "run")           # a model with inputs: None is an error, "hold" is said
+        result["u"] = _held("u", shared["u"] if held else u, n_steps, shared["u"].shape)
         if not np.isfinite(result["u"]).all():
             raise ValueError("u: contains NaN or Inf")
     elif u is not None:
-        raise ValueError(f"u: filter '{filt.family}' has no inputs")
+        raise ValueError(f"u: model '{filt.model['name']}' has no inputs")
     return _nan_policy(result, nan)
 
 
@@ -96,14 +124,68 @@ def _nan_policy(result: dict, nan: str) -> dict:
     return result
 
 
-def run(filt, name: str, per_step: dict, given: dict, u, nan: str) -> RunResult:
+class RunRefused(SymkfError):
+    """A run in which steps were refused (a SYMKF_ERR_* code each: that step kept the state while
+    time advanced). The filter is as it was before the run; ``result`` is the whole run's
+    :class:`RunResult`, ``steps`` the refused indices, ``codes`` their codes."""
+
+    def __init__(self, what: str, result: RunResult):
+        self.result, self.steps = result, result.refused_steps
+        self.codes = result.status[self.steps]
+        first = int(self.steps[0])
+        counts = ", ".join(f"{n}: {c}" for n, c in result.counts.items() if n != "SYMKF_GATED")
+        detail = (f"{self.steps.size} of {result.status.size} steps refused ({counts}), the first at step {first}; "
+                  "the filter is as before the run, the run's result is this error's .result; pass "
+                  "refused='continue' to run past refused steps")
+        super().__init__(what, int(self.codes[0]), detail)
+
+
+#: A run's first step (from the filter's time to times[0]) this many times longer than the record's
+#: median step is said: most often x0 belongs to times[0] and the filter was made without t0.
+LONG_FIRST_STEP = 10.0
+
+
+def warn_long_first_step(filt, times: np.ndarray, dt: np.ndarray) -> None:
+    if times.size > 1 and dt[0] > LONG_FIRST_STEP * float(np.median(np.diff(times))):
+        warnings.warn(f"run: the first step propagates {dt[0]:.6g} s, from the filter's time {filt.t!r} to times[0] = "
+                      f"{times[0]!r} (the record's steps are {float(np.median(np.diff(times))):.3g} s); if x0 is the "
+                      f"state at {times[0]!r}, make the filter with t0={times[0]!r} or set filter.t first",
+                      RuntimeWarning, stacklevel=3)
+
+
+def run(filt, name: str, per_step: dict, given: dict, u, nan: str, refused: str = "raise") -> RunResult:
     """A run of ``filt`` with measurement ``name``: ``per_step`` t and dt, the measurement's
     ``given`` arrays and ``u`` checked (:func:`series`), then the run loop, written once: the C
     ``<kernel>_run`` or, on the VM backend, step by step (the filter's run kernel,
-    ``FilterSpec.run``, else its step kernel). Its x, P and t end at the last step."""
+    ``FilterSpec.run``, else its step kernel). Its x, P and t end at the last step, unless a step
+    was refused and ``refused`` is "raise" (:class:`RunRefused`; x, P, t as before)."""
+    if refused not in REFUSED_POLICIES:
+        raise ValueError(f"refused: expected one of {REFUSED_POLICIES}, got {refused!r}")
     n_steps = per_step["dt"].size
     per_step.update(series(filt, name, n_steps, given, u, nan))
     kernel = filt.spec.run.get(name, filt.spec.step[name])
+    histories, status = _loop(filt, kernel, name, per_step, n_steps)
+    result = _result(filt, histories, status)
+    if result.gated_steps and name in filt._default_gates:
+        warnings.warn(f"{filt.family} run '{name}': {result.gated_steps} of {n_steps} updates refused by the default "
+                      f"innovation gate (chi-square probability {contract.DEFAULT_GATE_PROBABILITY!r}); set "
+                      f"gate={{'{name}': None}} to fuse every update, or a probability of your own", RuntimeWarning,
+                      stacklevel=3)
+    if refused == "raise" and result.refused_steps.size:
+        raise RunRefused(f"{filt.family} run '{name}'", result)
+    if n_steps:
+        for n in filt.spec.state:
+            filt._buffers[n][...] = histories[n][-1].T
+        if "u" in per_step and filt._buffers["u"].size:
+            filt._buffers["u"][:] = per_step["u"][-1]     # the input a later u="hold" keeps
+            filt._u_given = True
+        filt.t = float(per_step["t"][-1] + per_step["dt"][-1]) if "t" in per_step else \
+            filt.t + float(np.sum(per_step["dt"]))
+    return result
+
+
+def _loop(filt, kernel: str, name: str, per_step: dict, n_steps: int):
+    """The run loop over checked per-step arrays: histories of the carried state and the status."""
     info = filt._backend.kernels[kernel]
     constants = filt._measurement_buffers(name)
     dtype = filt._dtype
@@ -120,11 +202,10 @@ def run(filt, name: str, per_step: dict, given: dict, u, nan: str) -> RunResult:
              status.ctypes.data)
     else:
         _run_in_python(filt, kernel, info, arrays, histories, status)
-    if n_steps:
-        for n in filt.spec.state:
-            filt._buffers[n][...] = histories[n][-1].T
-        filt.t = float(per_step["t"][-1] + per_step["dt"][-1]) if "t" in per_step else \
-            filt.t + float(np.sum(per_step["dt"]))
+    return histories, status
+
+
+def _result(filt, histories: dict, status: np.ndarray) -> RunResult:
     x = histories["x"]
     P = np.transpose(histories["P"], (0, 2, 1)) if "P" in histories else None
     if filt._scaling is not None:

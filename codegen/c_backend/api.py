@@ -11,7 +11,7 @@ import casadi as ca
 
 from ..spec import Arg, Bundle, Kernel
 from .casadi_text import math_block
-from .names import GENERATED_NOTICE, ascii_text, public_names, raw_name
+from .names import ascii_text, generated_notice, public_names, raw_name
 from .template_util import template_text
 
 
@@ -327,7 +327,7 @@ def api_unit(bundle: Bundle) -> str:
     functions += [_wrapper(model, kernel) for kernel in bundle.kernels]
     functions += [_wrapper(model, kernel, unchecked=True) for kernel in trusted_kernels(bundle)]
     functions += [_run_loop(model, kernel, by_name) for kernel in bundle.kernels if kernel.runnable]
-    parts = [f"/* {GENERATED_NOTICE.format(model=model)}",
+    parts = [f"/* {generated_notice(model, bundle.description.get('source', ''))}",
              f" * CasADi {ca.__version__}. */",
              "#include <math.h>",
              "#include <stdint.h>",
@@ -347,9 +347,9 @@ def api_unit(bundle: Bundle) -> str:
     return ascii_text("\n".join(parts))
 
 
-def hash_unit(model: str, content_hash: str) -> str:
+def hash_unit(model: str, content_hash: str, source: str = "") -> str:
     """``<model>_hash.c``: ``<model>_content_hash()``, alone in its unit (every build changes it)."""
-    return "\n".join([f"/* {GENERATED_NOTICE.format(model=model)}",
+    return "\n".join([f"/* {generated_notice(model, source)}",
                       " * The content hash this library was generated with (checked by the Python loader). */",
                       f'#include "{model}.h"', "",
                       f'const char *{model}_content_hash(void) {{ return "{content_hash}"; }}', ""])

@@ -15,7 +15,7 @@ import casadi as ca
 
 from ..spec import STATUS_CODES, STATUS_GATED, STATUS_NONFINITE, Arg, Bundle, Kernel
 from .api import param_list, passing, run_params, trusted_kernels
-from .names import GENERATED_NOTICE, ascii_text
+from .names import ascii_text, generated_notice
 from .stack import STACK_PLACEHOLDER
 from .template_util import template_text
 
@@ -218,7 +218,7 @@ def header(bundle: Bundle, content_hash: str, compiler: str = "cc", flags: str =
     model = bundle.model_name
     guard = f"SYMKF_{_macro(model)}_H"
     desc = bundle.description
-    lines = [f"/* {GENERATED_NOTICE.format(model=model)}",
+    lines = [f"/* {generated_notice(model, bundle.description.get('source', ''))}",
              f" * Model: {desc.get('description', '')}",
              f" * Paper: {desc.get('paper', '')}",
              f" * Content hash: {content_hash}",

@@ -2,7 +2,7 @@
 units with the flags the Python library uses (so ``make stack`` reproduces the header's stack figures)."""
 from __future__ import annotations
 
-from .names import GENERATED_NOTICE, api_file, hash_file
+from .names import api_file, generated_notice, hash_file
 from .template_util import template_text
 
 STRICT_FLAGS = "-std=c99 -Wall -Wextra -Werror -pedantic"
@@ -15,7 +15,8 @@ def precision_flags(config) -> list[str]:
     return ["-Wdouble-promotion"] if config.precision == "float" else []
 
 
-def makefile(model: str, optimization: str, sources: list[str], own_flags: dict[str, str] | None = None) -> str:
+def makefile(model: str, optimization: str, sources: list[str], own_flags: dict[str, str] | None = None,
+             model_source: str = "") -> str:
     """A Makefile that builds the bundle's units with the same flags as the Python library (so
     ``make stack`` reproduces the header's stack figures); ``own_flags``: units compiled with
     their own -O flags (after $(CFLAGS), so they win)."""
@@ -30,6 +31,6 @@ def makefile(model: str, optimization: str, sources: list[str], own_flags: dict[
                   f"{flt}: {source}{header}", f"\t$(CC) {cflags} -Wdouble-promotion -DSYMKF_FLOAT -c -o $@ {source}",
                   f"{stk}: {source}{header}", f"\t$(CC) {cflags} -fPIC {STACK_FLAGS} -c -o $@ {source}", ""]
     return template_text("Makefile.mk").format(
-        notice=GENERATED_NOTICE.format(model=model), model=model, optimization=optimization,
+        notice=generated_notice(model, model_source), model=model, optimization=optimization,
         strict_flags=STRICT_FLAGS, objects=" ".join(objects), float_objects=" ".join(floats),
         stack_objects=" ".join(stacks), rules="\n".join(rules)) + "\n"

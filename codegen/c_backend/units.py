@@ -12,7 +12,7 @@ from ..spec import Bundle
 from .api import api_unit, hash_unit, public_functions
 from .casadi_text import CasadiCode, math_block, plain_names
 from .header import precision_lines
-from .names import GENERATED_NOTICE, api_file, ascii_text, check_unit_names, hash_file
+from .names import api_file, ascii_text, check_unit_names, generated_notice, hash_file
 from .template_util import template_text
 
 
@@ -21,7 +21,7 @@ def units(bundle: Bundle, content_hash: str, per_part: list[dict[str, str]] | No
     one per kernel and per function the kernels call (:func:`function_units`; ``per_part``: the
     units of each part, if a build already made them)."""
     model = bundle.model_name
-    out = {api_file(model): api_unit(bundle), hash_file(model): hash_unit(model, content_hash),
+    out = {api_file(model): api_unit(bundle), hash_file(model): hash_unit(model, content_hash, bundle.description.get("source", "")),
            **function_units(bundle, per_part)}
     check_unit_names(model, out, public_functions(bundle))
     return out
@@ -68,7 +68,7 @@ def part_units(bundle: Bundle) -> dict[str, str]:
                  f" * {code.signatures[number]}: called by the kernels' units (CasADi's code). */")
         text = plain_names(code.unit(number, symbols), f"{symbol}_casadi")
         units[f"{symbol}.c"] = ascii_text("\n".join([
-            f"/* {GENERATED_NOTICE.format(model=model)}", about,
+            f"/* {generated_notice(model, bundle.description.get('source', ''))}", about,
             "#include <math.h>", "", *precision_lines(bundle), template_text("real.h"), "", math_block(text), "",
             template_text("internal.h"), "",
             text]))

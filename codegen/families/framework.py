@@ -203,9 +203,16 @@ FAMILIES: dict[str, FamilyBuilder] = {}
 LONG_COMPILE: set[str] = set()
 
 
-def register_family(name: str, builder: FamilyBuilder, long_compile: bool = False, options=()) -> FamilyBuilder:
-    """Make a filter family available to models by name (``long_compile``: see :data:`LONG_COMPILE`),
-    with its discretisation options ``<name>_*`` (:class:`Discretisation`) and its own ``options``:
+#: Families that keep a quaternion state on the unit sphere (a chart, or a normalised estimate);
+#: any other family treats a declared quaternion as four free states (:func:`check_quaternions`).
+QUATERNION_FAMILIES: set[str] = set()
+
+
+def register_family(name: str, builder: FamilyBuilder, long_compile: bool = False, options=(),
+                    quaternions: bool = False) -> FamilyBuilder:
+    """Make a filter family available to models by name (``long_compile``: see :data:`LONG_COMPILE`;
+    ``quaternions``: it handles quaternion states, :data:`QUATERNION_FAMILIES`), with its
+    discretisation options ``<name>_*`` (:class:`Discretisation`) and its own ``options``:
     frozen dataclasses whose fields are the options it reads, each named ``<prefix><field>`` with
     the class's ``prefix``."""
     if name in FAMILIES and FAMILIES[name] is not builder:
@@ -213,7 +220,25 @@ def register_family(name: str, builder: FamilyBuilder, long_compile: bool = Fals
     FAMILIES[name] = builder
     if long_compile:
         LONG_COMPILE.add(name)
+    if quaternions:
+        QUATERNION_FAMILIES.add(name)
     declare_options(Discretisation, f"family '{name}'", prefix=f"{name}_")
     for declared in options:
         declare_options(declared, f"family '{name}'", prefix=declared.prefix)
     return builder
+
+
+def check_quaternions(model: Model) -> None:
+    """A family without a quaternion chart asked for on a model with quaternion states is an error
+    (it would treat each quaternion as four free states) unless the model says so on purpose in
+    ``Model.quaternion_as_vector_families``."""
+    if not model.quaternions:
+        return
+    unsure = [f for f in model.filters if f not in QUATERNION_FAMILIES and f not in model.quaternion_as_vector_families]
+    if unsure:
+        names = ", ".join(qs.name for qs in model.quaternions)
+        charted = sorted(QUATERNION_FAMILIES - {"gradient_descent"})
+        raise ValueError(f"model '{model.name}': filter famil{'ies' if len(unsure) > 1 else 'y'} {unsure} would treat "
+                         f"quaternion state {names} as 4 free states (P {model.nx} x {model.nx}, |q| drifting from 1); "
+                         f"ask for {charted} (error state on the rotation manifold), or set "
+                         f"model.quaternion_as_vector_families = {tuple(unsure)!r} to generate them anyway")

@@ -215,4 +215,4 @@ def kernels(model: Model, symbols: Symbols, functions: ModelFunctions) -> Family
     return Family(steps + [initial_kernel(symbols, fns, name) for name in names], specs)
 
 
-register_family("gradient_descent", kernels)
+register_family("gradient_descent", kernels, quaternions=True)      # a normalised quaternion

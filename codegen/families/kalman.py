@@ -25,13 +25,13 @@ A failed Cholesky factorisation returns status SYMKF_ERR_NOT_PD and the inputs x
 caller does first, with one rule (every input finite; z only where its mask is > 0.5): the C
 wrappers and run loops (codegen/c_backend/api.py) and the CasADi-VM backend (runtime/backends.py),
 as for the manifold family. An in-kernel test repeated theirs at one multiply-add per input entry
-(about 90 in the launcher's predict, 70 in its update) on every step (issue 12). The update's x
+(about 90 in the launcher's predict, 70 in its update) on every step. The update's x
 and P are tested: in a fused step they are the prediction's outputs, which no caller has seen.
 
 A predict kernel's x and P are its result only with status 0: nothing reads them otherwise (the C
 API and the VM backend return a nonzero status without copying the outputs, and the fused step
 keeps its inputs when the prediction failed), so they are not selected back to the inputs: 42
-selections fewer per step (issue 12). An update's x and P are selected (a gated update returns its
+selections fewer per step. An update's x and P are selected (a gated update returns its
 inputs with status SYMKF_GATED, and they are written).
 """
 from __future__ import annotations

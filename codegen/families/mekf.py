@@ -308,4 +308,4 @@ def _step_words(mf: ManifoldFunctions) -> str:
     return "the model's exact step" if mf.options.step == "exact" else "RK4"
 
 
-register_family("mekf", mekf_kernels, options=(ManifoldOptions, MekfOptions))
+register_family("mekf", mekf_kernels, quaternions=True, options=(ManifoldOptions, MekfOptions))

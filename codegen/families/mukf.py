@@ -90,4 +90,4 @@ def mukf_kernels(model: Model, symbols: Symbols, fns: ModelFunctions) -> Family:
                                         defaults={"kappa": DEFAULT_KAPPA})])
 
 
-register_family("mukf", mukf_kernels, options=(ManifoldOptions,))
+register_family("mukf", mukf_kernels, quaternions=True, options=(ManifoldOptions,))

@@ -226,5 +226,5 @@ def _setup(model: Model, symbols: Symbols, fns: ModelFunctions, family: str):
     return mf, ManifoldSymbols(model, symbols)
 
 
-register_family("sukf", sukf_kernels, options=(ManifoldOptions,))
-register_family("aukf", aukf_kernels, options=(ManifoldOptions,))
+register_family("sukf", sukf_kernels, quaternions=True, options=(ManifoldOptions,))
+register_family("aukf", aukf_kernels, quaternions=True, options=(ManifoldOptions,))

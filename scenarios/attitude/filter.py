@@ -46,20 +46,23 @@ class AttitudeFilter(Filter):
         q0, b0, P0: initial quaternion, gyro bias (rad/s) and 6x6 error covariance.
         Q, R: noise (defaults: Table 1 via models/attitude.py).
         kappa: UKF scaling (ignored by the MEKF).
+        gate: innovation gates as :class:`~symkf.runtime.filters.Filter` (default "none": paper
+            000 fuses every star-tracker sample).
 
     Attributes (read-only views): x, q, b, P; y and S of the last update (innovation δp_s, P^yy).
     """
 
     MEASUREMENT = "star_tracker"
 
-    def __init__(self, compiled, kind: str, q0, b0, P0, Q=None, R=None, kappa: float = DEFAULT_KAPPA):
+    def __init__(self, compiled, kind: str, q0, b0, P0, Q=None, R=None, kappa: float = DEFAULT_KAPPA,
+                 gate="none"):
         if kind not in KINDS:
             raise ValueError(f"kind: expected one of {KINDS}, got {kind!r}")
         x, P = _initial_state(q0, b0, P0)
         Q = model.process_noise_psd() if Q is None else Q
         R = {self.MEASUREMENT: model.star_tracker_covariance() if R is None else R}
         options = {} if kind == "mekf" else {"kappa": kappa}
-        super().__init__(compiled, FILTER_OF_KIND[kind], x, P, Q, R=R, **options)
+        super().__init__(compiled, FILTER_OF_KIND[kind], x, P, Q, R=R, gate=gate, **options)
         self.kind = kind
 
     y = property(lambda self: Filter.y(self, self.MEASUREMENT), doc="Innovation δp_s of the last update (eq 50).")

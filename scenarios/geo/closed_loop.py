@@ -165,7 +165,7 @@ class ClosedLoop:
         s, tune = self.settings, self.tuning
         x0 = np.zeros(17)
         if s.estimator == "ekf":
-            return self.compiled.filter("cd_ekf", x0, tune["P0"], tune["Q"], R=tune["R"])
+            return self.compiled.filter("cd_ekf", x0, tune["P0"], tune["Q"], R=tune["R"], gate="none")   # paper 003: no gate
         if s.estimator == "numpy-ekf":
             return NumpyCDEKF(self.model_sym, x0, tune["P0"], tune["Q"], tune["R"],
                               int(self.model_sym.codegen_defaults.get("rk4_substeps", 1)))
@@ -243,7 +243,7 @@ class ClosedLoop:
             z = self.sense(name, x)
             mask = self.gyro_mask if name == "gyro" else np.ones(z.size)
             z = np.where(mask > 0, z, np.nan)               # a failed gyro outputs nothing
-            ekf.update(z, measurement=name, mask=mask)
+            ekf.update(z, measurement=name, mask=mask, u=u)
         return np.array(ekf.x, dtype=float)
 
     def _sensor_tick(self, k: int, x: np.ndarray, sensed: dict) -> np.ndarray:

@@ -99,7 +99,8 @@ class Workload:
 
 
 def _options(family: str) -> dict:
-    return {"kappa": TUNING["kappa"]} if family == "ukf" else {}
+    """The paper's filters: no innovation gate (paper 004 fuses every sample), kappa for the UKF."""
+    return {"gate": "none", **({"kappa": TUNING["kappa"]} if family == "ukf" else {})}
 
 
 #: Rounds of the step timing (medians over rounds; the spread of the rounds' ratios is reported).
@@ -159,7 +160,8 @@ def time_compiled_step(model, family: str, work: Workload, batch: int = 100, ste
     on its own filter over the same ``steps`` (default ``work.steps``), in alternate batches; with
     ``c_loop``, also the C loop's batches over the same steps, in turn with them."""
     paths = ("compiled_step", "compiled_step_rows", "compiled_step_python")
-    filters = {path: model.filter(family, work.x0, work.P0, TUNING["Q"], **_options(family)) for path in paths}
+    filters = {path: model.filter(family, work.x0, work.P0, TUNING["Q"], t0=work.base_times[0], **_options(family))
+               for path in paths}
     filters["compiled_step_python"].fast_path = False
     if c_loop is not None:
         filters["c_loop"] = c_loop
@@ -175,17 +177,17 @@ def time_compiled_step(model, family: str, work: Workload, batch: int = 100, ste
                 for k in range(b * batch, (b + 1) * batch):
                     i = work.index(k)
                     if i == 1:                  # the segment starts again (one batch's median is spared)
-                        f.x, f.P = work.x0, work.P0
-                    f.step(times[i - 1], dt, z[i], q=q[i])
+                        f.x, f.P, f.t = work.x0, work.P0, times[0]
+                    f.step(times[i - 1], dt, z[i], "radar", q=q[i])
             return rows
 
         def prepared(b):
             for k in range(b * batch, (b + 1) * batch):
                 i = work.index(k)
                 if i == 1:
-                    f.x, f.P = work.x0, work.P0
+                    f.x, f.P, f.t = work.x0, work.P0, times[0]
                 t, z_i, q_i = ready[i]
-                f.step(t, dt, z_i, q=q_i)
+                f.step(t, dt, z_i, "radar", q=q_i)
         return prepared
 
     batches = -(-(work.steps if steps is None else steps) // batch)
@@ -223,13 +225,13 @@ class CLoop:
 
 
 def time_compiled_run(model, family: str, work: Workload) -> float:
-    f = model.filter(family, work.x0, work.P0, TUNING["Q"], **_options(family))
+    f = model.filter(family, work.x0, work.P0, TUNING["Q"], t0=work.base_times[0], **_options(family))
     n = len(work.base_times)
     repeats = max(1, int(np.ceil(work.steps / n)))
 
     def whole_record():
-        f.x, f.P = work.x0, work.P0
-        f.run(work.base_times, work.z, q=work.q)
+        f.x, f.P, f.t = work.x0, work.P0, work.base_times[0]
+        f.run(work.base_times, work.z, "radar", q=work.q)
     return timing.repeated(whole_record, max(repeats, 3), calls=n).us
 
 

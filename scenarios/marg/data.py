@@ -152,8 +152,10 @@ def load_recording(path: str | Path) -> Recording:
 
 def run_recording(compiled, filt, recording: Recording, measurement: str = "marg", initialize: bool = True) -> RunResult:
     """Initialise ``filt`` (a gradient-descent Filter of ``compiled``, ``scenarios/marg/filter.py``)
-    from the first sample (if asked) and filter the whole recording."""
+    from the first sample and its clock at the recording's start (if asked), and filter the whole
+    recording."""
     z = samples(recording.acc, recording.mag, measurement)
     if initialize:
         filt.x = initial_orientation(compiled, z[0], measurement)
+        filt.t = float(recording.time[0])
     return filt.run(recording.time, z, measurement, u=recording.gyro)

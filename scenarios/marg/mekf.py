@@ -100,8 +100,9 @@ def measurements(recording) -> np.ndarray:
 def make_filter(compiled, recording, gate: float | None = None):
     """The MEKF initialised from the recording's first sample."""
     x0 = np.r_[initial_orientation(recording.acc[0], recording.mag[0]), np.zeros(3)]
-    options = {"gate": {"marg": gate}} if gate else {}
-    return compiled.filter("mekf", x0, np.diag(INITIAL_SIGMA**2), marg_mekf.process_noise_psd(), **options)
+    options = {"gate": {"marg": gate if gate else None}}     # no gate unless asked (the tables' setting)
+    return compiled.filter("mekf", x0, np.diag(INITIAL_SIGMA**2), marg_mekf.process_noise_psd(),
+                           t0=float(recording.time[0]), **options)
 
 
 def run_recording(compiled, recording, gate: float | None = None) -> RunResult:

@@ -135,7 +135,7 @@ def geo(duration: float) -> dict:
         for precision, compiled in builds.items():
             loop = ClosedLoop(LoopSettings(duration, "ekf", bias=True, noise=True, **options), double)
             tuning = loop.tuning
-            loop.filter = compiled.filter("cd_ekf", np.zeros(17), tuning["P0"], tuning["Q"], R=tuning["R"])
+            loop.filter = compiled.filter("cd_ekf", np.zeros(17), tuning["P0"], tuning["Q"], R=tuning["R"], gate="none")
             rows = out.setdefault(label, {}).setdefault("cd_ekf", {})
             try:
                 result = loop.run()

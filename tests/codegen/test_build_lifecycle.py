@@ -264,7 +264,7 @@ def test_missing_compiler_falls_back_to_casadi_vm_with_same_numbers(launcher_com
         a, b = vm.filter(family, x0, P0, Q), launcher_compiled.filter(family, x0, P0, Q)
         for k in range(5):
             for f in (a, b):
-                f.step(0.05 * k, 0.05, [60.0 + 20 * k, 1.2, 2.5], q=L.station_params(1))
+                f.step(0.05 * k, 0.05, [60.0 + 20 * k, 1.2, 2.5], "radar", q=L.station_params(1))
         np.testing.assert_allclose(a.x, b.x, rtol=1e-12)
         np.testing.assert_allclose(a.P, b.P, rtol=1e-9, atol=1e-12 * np.abs(b.P).max())
 

@@ -1,4 +1,4 @@
-"""Events the integrator respects (issue 11): a step across a model event equals two steps
+"""Events the integrator respects: a step across a model event equals two steps
 meeting at it, in the CasADi functions and in the generated C; split steps follow the truth."""
 import casadi as ca
 import numpy as np
@@ -127,10 +127,10 @@ def test_paper_like_compiled_step_equals_numpy_reference(family):
     z, q = track.noisy(np.random.default_rng(3)), track.station_params()
     P0 = np.diag([1.0, 1e-4, 1e-4, 100.0, 1e-5, 1e-5]) ** 2
     Q = np.diag([0.005, 1e-12, 1e-12, 0.005, 1e-16, 1e-16])
-    compiled = paper_like.filter(family, truth[0], P0, Q)
+    compiled = paper_like.filter(family, truth[0], P0, Q, t0=times[0])
     reference = ReferenceFilter("launcher", family, truth[0], P0, Q, **PAPER_LIKE)
     for k in range(1, len(times)):
-        compiled.step(times[k - 1], 0.1, z[k], q=q[k])
+        compiled.step(times[k - 1], 0.1, z[k], "radar", q=q[k])
         reference.step(times[k - 1], 0.1, z[k], "radar", q[k])
         sigma = np.sqrt(np.diag(reference.P))
         assert np.max(np.abs(compiled.x - reference.x) / sigma) < 1e-7

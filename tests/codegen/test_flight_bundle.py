@@ -218,5 +218,5 @@ def test_c_harness_reproduces_python(harness, launcher_compiled, family):
     c_states = np.array([[float(v) for v in line.split()] for line in out.strip().splitlines()])
     f = launcher_compiled.filter(family, x0, P0, Q, **({"kappa": kappa} if family == "ukf" else {}))
     for k in range(1, len(times)):
-        f.step(times[k - 1], 0.05, z[k], q=q[k], mask=mask[k])
+        f.step(times[k - 1], 0.05, z[k], "radar", q=q[k], mask=mask[k])
         np.testing.assert_allclose(c_states[k - 1], f.x, rtol=1e-13, atol=0)

@@ -1,4 +1,4 @@
-"""Single precision that works (issue 13): the scaled state declared in the model, the transform
+"""Single precision that works: the scaled state declared in the model, the transform
 derived by CasADi, the float build run from Python, and the launcher EKF in float over a flight."""
 import casadi as ca
 import numpy as np
@@ -182,14 +182,14 @@ def test_float_build_refuses_values_beyond_float_range_without_warning(launcher_
     from symkf.scenarios.launcher import campaign as C
     x0, P0 = C.L.initial_state(), np.diag(C.TUNING["P0_floor"] ** 2)
     f = launcher_float.ukf(x0, P0, C.TUNING["Q"])
-    f.step(0.0, 0.05, [60.0, 1.2, 2.5], q=C.L.station_params(1))
-    before, R_before = _state(f), f.R("radar").copy()
+    f.step(0.0, 0.05, [60.0, 1.2, 2.5], "radar", q=C.L.station_params(1))
+    before, R_before = _state(f), f.R["radar"].copy()
     z, q = [1e39, 1.2, 2.5], C.L.station_params(1)
     attempts = {
-        "update": (lambda: f.update(z, q=q), "z"),
-        "step": (lambda: f.step(0.05, 0.05, z, q=q), "z"),
-        "run": (lambda: f.run([0.1, 0.15], [[60.0, 1.2, 2.5], z], q=q), "z"),
-        "t": (lambda: f.step(1e39, 0.05, [60.0, 1.2, 2.5], q=q), "t"),
+        "update": (lambda: f.update(z, "radar", q=q), "z"),
+        "step": (lambda: f.step(0.05, 0.05, z, "radar", q=q), "z"),
+        "run": (lambda: f.run([0.1, 0.15], [[60.0, 1.2, 2.5], z], "radar", q=q), "z"),
+        "t": (lambda: setattr(f, "t", 1e39), "t"),
         "R": (lambda: f.set_R("radar", np.diag([1e39, 1.0, 1.0])), r"R\[radar\]"),
         "p": (lambda: setattr(f, "p", np.full(f.p.size, 1e39)), "p"),
         "kappa": (lambda: launcher_float.ukf(x0, P0, C.TUNING["Q"], kappa=1e39), "kappa"),
@@ -200,7 +200,7 @@ def test_float_build_refuses_values_beyond_float_range_without_warning(launcher_
         with pytest.raises(ValueError, match=rf"^{name}: a value overflows float32"):
             attempt()
     after = _state(f)
-    assert all(np.array_equal(a, b) for a, b in zip(before, after)) and np.array_equal(f.R("radar"), R_before)
+    assert all(np.array_equal(a, b) for a, b in zip(before, after)) and np.array_equal(f.R["radar"], R_before)
 
 
 def test_float_configuration_is_refused_by_the_virtual_machine(tmp_path, monkeypatch):

@@ -1,4 +1,4 @@
-"""Non-additive process noise (issue 9, item 6): a model with noise() gets Q = PSD of w (nw x nw),
+"""Non-additive process noise: a model with noise() gets Q = PSD of w (nw x nw),
 mapped through G = df/dw at the step start: Q_d = G Q G^T dt, checked against a hand-derived G."""
 import numpy as np
 import pytest

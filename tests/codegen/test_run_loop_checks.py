@@ -1,6 +1,6 @@
 """A compiled run checks the inputs that do not change along it (parameters, noise, the initial
 state) once and the per-step inputs (t, dt, z, mask, q) at each step, and calls a fused step's
-predict and update kernels itself (issue 12). Past the Python contract, its codes and histories
+predict and update kernels itself. Past the Python contract, its codes and histories
 must be exactly those of the same steps called one by one through the C step function, refused
 steps included."""
 import numpy as np

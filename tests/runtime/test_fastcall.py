@@ -1,5 +1,5 @@
 """The step fast path (runtime/_fastcall.c): same numbers as the Python path, and it declines,
-writing nothing, every call it is not sure of (issue 12; the contract itself is tests/test_contract.py)."""
+writing nothing, every call it is not sure of (the contract itself is tests/test_contract.py)."""
 import os
 import subprocess
 import sys
@@ -50,15 +50,15 @@ def _state(f) -> tuple:
 def test_launcher_fast_path_equals_python_path_bit_for_bit(launcher_compiled, family):
     fast = launcher_compiled.filter(family, X0, P0, Q)
     slow = _python_path(launcher_compiled.filter(family, X0, P0, Q))
-    assert fast.fast_path and fast._fast.default is not None
+    assert fast.fast_path and fast._fast.steps["radar"] is not None
     masks = [None, np.array([1.0, 0.0, 1.0]), None, np.array([0.0, 0.0, 0.0]), None]
     for k in range(1, len(TIMES)):
         mask = masks[k % len(masks)]
-        codes = [f.step(TIMES[k - 1], 0.05, Z[k], q=STATIONS[k], mask=mask) for f in (fast, slow)]
+        codes = [f.step(TIMES[k - 1], 0.05, Z[k], "radar", q=STATIONS[k], mask=mask) for f in (fast, slow)]
         assert codes[0] == codes[1] == 0
         for a, b in zip(_state(fast), _state(slow)):
             assert np.array_equal(a, b)
-        assert np.array_equal(fast.y(), slow.y()) and np.array_equal(fast.S(), slow.S())
+        assert np.array_equal(fast.y("radar"), slow.y("radar")) and np.array_equal(fast.S("radar"), slow.S("radar"))
         assert np.array_equal(fast.kernel_buffer("mask", "radar"), slow.kernel_buffer("mask", "radar"))
     assert type(fast.t) is float and fast.t == slow.t
 
@@ -138,7 +138,7 @@ DECLINED = {
 def test_fast_path_declines_and_writes_nothing(launcher_compiled, case):
     f = launcher_compiled.ekf(X0, P0, Q)
     before = _buffers(f)
-    assert f._fast.default(*DECLINED[case]) is None
+    assert f._fast.steps["radar"](*DECLINED[case]) is None
     assert all(np.array_equal(a, b, equal_nan=True) for a, b in zip(before, _buffers(f)))
 
 
@@ -149,7 +149,7 @@ def test_what_the_python_path_accepts_the_fast_path_takes_alike(launcher_compile
     fast, slow = launcher_compiled.ekf(X0, P0, Q), _python_path(launcher_compiled.ekf(X0, P0, Q))
     for f in (fast, slow):
         f.t = TIMES[0]
-        assert f.step(None, 0.05, z, q=STATION, mask=np.array([1.0, 0.0, 1.0])) == 0
+        assert f.step(None, 0.05, z, "radar", q=STATION, mask=np.array([1.0, 0.0, 1.0])) == 0
     assert fast.fast_calls == 1 and slow.fast_calls == 0
     for a, b in zip(_state(fast), _state(slow)):
         assert np.array_equal(a, b)
@@ -165,7 +165,7 @@ def test_lists_and_tuples_of_numbers_take_the_fast_path_alike(launcher_compiled)
         for k in range(1, 4):
             z = [float(v) for v in Z[k]]
             z[0] = int(z[0])                                           # an int among floats
-            assert f.step(TIMES[k - 1], 0.05, z, q=tuple(STATIONS[k]), mask=[1, 1, 1]) == 0
+            assert f.step(TIMES[k - 1], 0.05, z, "radar", q=tuple(STATIONS[k]), mask=[1, 1, 1]) == 0
     assert fast.fast_calls == 3 and slow.fast_calls == 0
     for a, b in zip(_state(fast), _state(slow)):
         assert np.array_equal(a, b)
@@ -173,13 +173,13 @@ def test_lists_and_tuples_of_numbers_take_the_fast_path_alike(launcher_compiled)
 
 def test_the_fast_path_counts_only_the_calls_it_took(launcher_compiled):
     f = launcher_compiled.ekf(X0, P0, Q)
-    f.step(TIMES[0], 0.05, Z[1], q=STATION)
-    f.step(TIMES[1], 0.05, Z[2].astype(">f8"), q=STATIONS[2])        # big-endian: the Python path
+    f.step(TIMES[0], 0.05, Z[1], "radar", q=STATION)
+    f.step(TIMES[1], 0.05, Z[2].astype(">f8"), "radar", q=STATIONS[2])        # big-endian: the Python path
     with pytest.raises(ValueError):
-        f.step(TIMES[2], 0.05, Z[3], q=STATIONS[3], mask=np.array([1.0, 0.5, 1.0]))
+        f.step(TIMES[2], 0.05, Z[3], "radar", q=STATIONS[3], mask=np.array([1.0, 0.5, 1.0]))
     assert f.fast_calls == 1
     f.fast_path = False
-    f.step(TIMES[2], 0.05, Z[3], q=STATIONS[3])
+    f.step(TIMES[2], 0.05, Z[3], "radar", q=STATIONS[3])
     assert f.fast_calls == 0 and not f.fast_path
 
 
@@ -188,9 +188,9 @@ def test_rows_of_a_column_major_record_take_the_fast_path(launcher_compiled):
     z, q = np.asfortranarray(Z), np.asfortranarray(STATIONS)
     fast, slow = launcher_compiled.ekf(X0, P0, Q), _python_path(launcher_compiled.ekf(X0, P0, Q))
     for k in range(1, 4):
-        assert fast._fast.default(TIMES[k - 1], 0.05, z[k], q[k], None, None) == 0     # taken, not declined
+        assert fast._fast.steps["radar"](TIMES[k - 1], 0.05, z[k], q[k], None, None) == 0     # taken, not declined
         fast.t = TIMES[k]
-        slow.step(TIMES[k - 1], 0.05, Z[k], q=STATIONS[k])
+        slow.step(TIMES[k - 1], 0.05, Z[k], "radar", q=STATIONS[k])
         assert np.array_equal(fast.x, slow.x) and np.array_equal(fast.P, slow.P)
 
 
@@ -198,13 +198,13 @@ def test_other_float64_buffers_take_the_fast_path(launcher_compiled):
     """Not only ndarrays: any native float64 buffer (array.array, memoryview) is read the same."""
     import array
     fast, slow = launcher_compiled.ekf(X0, P0, Q), _python_path(launcher_compiled.ekf(X0, P0, Q))
-    assert fast._fast.default(TIMES[0], 0.05, array.array("d", Z[1]), memoryview(STATIONS[1]), None, None) == 0
-    slow.step(TIMES[0], 0.05, Z[1], q=STATIONS[1])
+    assert fast._fast.steps["radar"](TIMES[0], 0.05, array.array("d", Z[1]), memoryview(STATIONS[1]), None, None) == 0
+    slow.step(TIMES[0], 0.05, Z[1], "radar", q=STATIONS[1])
     assert np.array_equal(fast.x, slow.x) and np.array_equal(fast.P, slow.P)
 
 
 def test_fast_path_checks_its_own_call(launcher_compiled):
-    fast = launcher_compiled.ekf(X0, P0, Q)._fast.default
+    fast = launcher_compiled.ekf(X0, P0, Q)._fast.steps["radar"]
     with pytest.raises(TypeError, match="positional"):
         fast(0.0, 0.05, _radar(1))
     with pytest.raises(TypeError):
@@ -216,7 +216,7 @@ def test_a_kernel_failure_is_raised_by_the_python_path_with_state_unchanged(laun
     f.kernel_buffer("P")[0, 0] = -1.0            # behind the contract's back: the C EKF refuses it
     before = _state(f)
     with pytest.raises(SymkfError, match="NOT_PD"):
-        f.step(0.0, 0.05, _radar(1), q=STATION)
+        f.step(0.0, 0.05, _radar(1), "radar", q=STATION)
     assert all(np.array_equal(a, b) for a, b in zip(before, _state(f)))
 
 
@@ -268,9 +268,9 @@ def test_plain_step_calls_run_in_c_by_position_or_keyword(launcher_compiled):
     measurement named) is taken by it (its own counter), with the Python path's numbers bit for bit."""
     fast, slow = launcher_compiled.ekf(X0, P0, Q), _python_path(launcher_compiled.ekf(X0, P0, Q))
     assert type(fast.step).__name__ == "Method" and type(slow.step).__name__ == "method"
-    calls = [lambda f, k: f.step(TIMES[k - 1], 0.05, Z[k], q=STATIONS[k]),
+    calls = [lambda f, k: f.step(TIMES[k - 1], 0.05, Z[k], "radar", q=STATIONS[k]),
              lambda f, k: f.step(TIMES[k - 1], 0.05, Z[k], "radar", STATIONS[k], np.ones(3)),
-             lambda f, k: f.step(z=Z[k], dt=0.05, t=TIMES[k - 1], q=STATIONS[k], nan="raise", measurement=None),
+             lambda f, k: f.step(z=Z[k], dt=0.05, t=TIMES[k - 1], q=STATIONS[k], nan="raise", measurement="radar"),
              lambda f, k: f.step(None, 0.05, Z[k], measurement="radar", q=STATIONS[k], mask=[1, 0, 1], u=None)]
     for k in range(1, 9):
         assert calls[k % 4](fast, k) == calls[k % 4](slow, k) == 0
@@ -294,7 +294,7 @@ TO_PYTHON = {
 def test_the_step_method_hands_other_calls_to_python(launcher_compiled, case):
     kwargs, error = TO_PYTHON[case]
     f, slow = launcher_compiled.ekf(X0, P0, Q), _python_path(launcher_compiled.ekf(X0, P0, Q))
-    call = {"t": 0.0, "dt": 0.05, "z": Z[1], "q": STATION, **kwargs}
+    call = {"t": 0.0, "dt": 0.05, "z": Z[1], "measurement": "radar", "q": STATION, **kwargs}
     before = _state(f)
     if error is None:
         assert f.step(**call) == slow.step(**call)
@@ -311,7 +311,8 @@ def test_the_step_method_hands_other_calls_to_python(launcher_compiled, case):
 
 
 def test_the_step_method_takes_any_measurement_with_a_fast_path(launcher_compiled):
-    fast, slow = launcher_compiled.ekf(X0, P0, Q), _python_path(launcher_compiled.ekf(X0, P0, Q))
+    fast, slow = (launcher_compiled.ekf(X0, P0, Q, gate="none"),
+                  _python_path(launcher_compiled.ekf(X0, P0, Q, gate="none")))   # z is radar 1's: off this frame
     q = np.zeros(fast.kernel_buffer("q", "radar_wgs84").size)
     q[:STATION.size] = STATION
     assert fast.step(0.0, 0.05, Z[1], "radar_wgs84", q) == slow.step(0.0, 0.05, Z[1], "radar_wgs84", q) == 0
@@ -325,7 +326,7 @@ def test_the_step_method_keeps_python_s_errors_for_bad_arity(launcher_compiled):
     with pytest.raises(TypeError, match="missing 1 required positional argument: 'z'"):
         f.step(0.0, 0.05)
     with pytest.raises(TypeError, match="multiple values for argument 't'"):
-        f.step(0.0, 0.05, Z[1], t=0.0, q=STATION)
+        f.step(0.0, 0.05, Z[1], "radar", t=0.0, q=STATION)
     with pytest.raises(TypeError, match="positional arguments"):
         f.step(0.0, 0.05, Z[1], "radar", STATION, None, None, "raise", 9)
     assert f.step.calls == 0 and f.t == 0.0
@@ -360,7 +361,7 @@ def test_a_subclass_s_own_step_is_not_replaced(launcher_compiled):
 
     f = Logged(launcher_compiled, "ekf", X0, P0, Q)
     assert "step" not in f.__dict__
-    assert f.step(0.0, 0.05, Z[1], q=STATION) == 0 and f.logged and f.fast_calls == 1
+    assert f.step(0.0, 0.05, Z[1], "radar", q=STATION) == 0 and f.logged and f.fast_calls == 1
 
 
 def test_the_step_method_reads_each_call_site_s_keywords(launcher_compiled):
@@ -368,8 +369,8 @@ def test_the_step_method_reads_each_call_site_s_keywords(launcher_compiled):
     tuple every time): calls with other names, in another order, or an unknown name in between,
     still read each argument by its own name."""
     fast, slow = launcher_compiled.ekf(X0, P0, Q), _python_path(launcher_compiled.ekf(X0, P0, Q))
-    spellings = [dict(q=STATIONS[0], mask=None), dict(mask=None, q=STATIONS[0]), dict(bogus=1),
-                 dict(measurement="radar", q=STATIONS[0]), {"q": STATIONS[0]}]
+    spellings = [dict(measurement="radar", q=STATIONS[0], mask=None), dict(mask=None, q=STATIONS[0], measurement="radar"),
+                 dict(bogus=1), dict(measurement="radar", q=STATIONS[0]), {"q": STATIONS[0], "measurement": "radar"}]
     for k in range(1, 11):
         kwargs = dict(spellings[k % len(spellings)])
         if "q" in kwargs:
@@ -377,7 +378,7 @@ def test_the_step_method_reads_each_call_site_s_keywords(launcher_compiled):
         results = []
         for f in (fast, slow):
             try:
-                results.append(f.step(TIMES[k - 1], 0.05, Z[k], **kwargs))
+                results.append(f.step(f.t, 0.05, Z[k], **kwargs))
             except TypeError as error:
                 results.append(str(error))
         assert results[0] == results[1]

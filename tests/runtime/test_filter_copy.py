@@ -47,13 +47,13 @@ def _check_copy(original, make_copy, step) -> None:
 def test_a_launcher_filter_s_copy_is_its_own(launcher_compiled, family, how):
     f = launcher_compiled.filter(family, TRUTH[0], P0, Q)
     f.set_gate("radar", probability=0.999)
-    f.step(TIMES[0], 0.05, Z[1], q=STATIONS[1])
+    f.step(TIMES[0], 0.05, Z[1], "radar", q=STATIONS[1])
 
     def step(g):
-        assert g.step(TIMES[1], 0.05, Z[2], q=STATIONS[2], mask=[1.0, 0.0, 1.0]) == 0
+        assert g.step(TIMES[1], 0.05, Z[2], "radar", q=STATIONS[2], mask=[1.0, 0.0, 1.0]) == 0
     _check_copy(f, COPIES[how], step)
     clone = COPIES[how](f)                                  # the gate is copied, not shared
-    assert clone.step(f.t, 0.05, [1e308, 0.1, 0.1], q=STATIONS[3]) == 6     # SYMKF_GATED
+    assert clone.step(f.t, 0.05, [1e308, 0.1, 0.1], "radar", q=STATIONS[3]) == 6     # SYMKF_GATED
     assert clone.fast_calls >= 1 and clone.t != f.t
 
 

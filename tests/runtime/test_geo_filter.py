@@ -10,6 +10,7 @@ from symkf.scenarios.geo.closed_loop import LoopSettings, _load, simulate
 
 X0 = geo.initial_errors(geo.TABLE6) + np.r_[np.zeros(3), 1e-3 * np.ones(3), np.zeros(11)]
 U = np.array([0.3, -0.1, 0.2, 0.05])
+NO_TORQUE = np.zeros(4)      # an update before any predict: the wheels' input at that time, said
 
 
 @pytest.fixture(scope="module")
@@ -23,7 +24,7 @@ def make_pair(compiled, P0=None):
     if P0 is None:
         L = rng.normal(size=(17, 17)) * 0.1
         P0 = tune["P0"] * 0.1 + L @ L.T
-    ekf = compiled.filter("cd_ekf", X0, P0, tune["Q"], R=tune["R"])
+    ekf = compiled.filter("cd_ekf", X0, P0, tune["Q"], R=tune["R"], gate="none")   # the reference has no gate
     ref = NumpyCDEKF(get_model("geo_satellite"), X0, P0, tune["Q"], tune["R"])
     return ekf, ref
 
@@ -42,7 +43,7 @@ def test_predict_matches_numpy_reference(compiled):
 def test_update_matches_numpy_reference(compiled, name):
     ekf, ref = make_pair(compiled)
     z = np.asarray(get_model("geo_satellite").measurements[name].sigma) * 3 + 0.01
-    ekf.update(z, measurement=name)
+    ekf.update(z, measurement=name, u=NO_TORQUE)
     ref.update(z, measurement=name)
     np.testing.assert_allclose(ekf.x, ref.x, rtol=1e-10, atol=1e-14)
     np.testing.assert_allclose(ekf.P, ref.P, rtol=1e-8, atol=1e-12)
@@ -65,20 +66,20 @@ def test_masked_gyro_changes_nothing(compiled):
     results = []
     for value in (z[1], 1e3, np.nan):
         ekf, _ = make_pair(compiled)
-        ekf.update(np.r_[z[0], value, z[2:]], measurement="gyro", mask=[1, 0, 1, 1])
+        ekf.update(np.r_[z[0], value, z[2:]], measurement="gyro", mask=[1, 0, 1, 1], u=NO_TORQUE)
         results.append((ekf.x.copy(), ekf.P.copy()))
     for x, P in results[1:]:
         np.testing.assert_array_equal(x, results[0][0])
         np.testing.assert_array_equal(P, results[0][1])
     full, _ = make_pair(compiled)
-    full.update(z, measurement="gyro")
+    full.update(z, measurement="gyro", u=NO_TORQUE)
     assert not np.allclose(full.x, results[0][0])             # the mask did something
 
 
 def test_masked_component_equals_dropping_it_in_the_reference(compiled):
     ekf, ref = make_pair(compiled)
     z = np.array([1e-3, -2e-3, 5e-4, 1e-3])
-    ekf.update(z, measurement="gyro", mask=[0, 1, 0, 1])
+    ekf.update(z, measurement="gyro", mask=[0, 1, 0, 1], u=NO_TORQUE)
     ref.update(z, measurement="gyro", mask=[0, 1, 0, 1])
     np.testing.assert_allclose(ekf.x, ref.x, rtol=1e-10, atol=1e-14)
     np.testing.assert_allclose(ekf.P, ref.P, rtol=1e-8, atol=1e-12)
@@ -102,7 +103,7 @@ def test_not_positive_definite_innovation_fails_cleanly(compiled):
     ekf.measurements["sun_sensor"]["R"][:] = -10.0                # past the contract: the C code refuses it too
     x, P = ekf.x.copy(), ekf.P.copy()
     with pytest.raises(SymkfError, match="NOT_PD"):
-        ekf.update([0.0], measurement="sun_sensor")
+        ekf.update([0.0], measurement="sun_sensor", u=NO_TORQUE)
     np.testing.assert_array_equal(ekf.x, x)
     np.testing.assert_array_equal(ekf.P, P)
 

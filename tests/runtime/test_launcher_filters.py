@@ -35,7 +35,7 @@ def test_compiled_step_equals_numpy_reference(launcher_compiled, flight, family)
     worst_x = worst_P = 0.0
     for k in range(1, len(times)):
         dt = times[k] - times[k - 1]
-        compiled.step(times[k - 1], dt, z[k], q=q[k])
+        compiled.step(times[k - 1], dt, z[k], "radar", q=q[k])
         reference.step(times[k - 1], dt, z[k], "radar", q[k])
         sigma = np.sqrt(np.diag(reference.P))
         worst_x = max(worst_x, _scaled_error(compiled.x, reference.x, sigma))

@@ -26,23 +26,23 @@ def _unchanged(f, x, P):
 
 def test_nan_measurement_masked_on_request_equals_explicit_mask(launcher_compiled, filt):
     twin = launcher_compiled.filter(filt.family, filt.x, filt.P, Q)
-    filt.update([60.0, np.nan, 2.5], q=STATION, nan="mask")
-    twin.update([60.0, 0.0, 2.5], q=STATION, mask=[1, 0, 1])
+    filt.update([60.0, np.nan, 2.5], "radar", q=STATION, nan="mask")
+    twin.update([60.0, 0.0, 2.5], "radar", q=STATION, mask=[1, 0, 1])
     np.testing.assert_array_equal(filt.x, twin.x)
-    assert filt.y()[1] == 0.0
+    assert filt.y("radar")[1] == 0.0
 
 
 def test_masked_component_contributes_nothing(launcher_compiled, filt):
     twin = launcher_compiled.filter(filt.family, filt.x, filt.P, Q)
-    filt.update([60.0, 1.2, 2.5], q=STATION, mask=[1, 1, 0])
-    twin.update([60.0, 1.2, -1e9], q=STATION, mask=[1, 1, 0])
+    filt.update([60.0, 1.2, 2.5], "radar", q=STATION, mask=[1, 1, 0])
+    twin.update([60.0, 1.2, -1e9], "radar", q=STATION, mask=[1, 1, 0])
     np.testing.assert_array_equal(filt.x, twin.x)
     np.testing.assert_array_equal(filt.P, twin.P)
 
 
 def test_all_masked_update_is_a_no_op(filt):
     x, P = filt.x.copy(), filt.P.copy()
-    filt.update([np.nan, np.nan, np.nan], q=STATION, mask=[0, 0, 0])
+    filt.update([np.nan, np.nan, np.nan], "radar", q=STATION, mask=[0, 0, 0])
     _unchanged(filt, x, P)
 
 

@@ -45,7 +45,7 @@ class Feed:
 
     def step(self, f, k: int, **change):
         args = {"z": self.z[k], "q": self.r.mag[k], "mask": self.mask[k], "u": self.r.gyro[k], **change}
-        return f.step(self.r.time[k - 1], self.r.time[k] - self.r.time[k - 1], args.pop("z"), "marg", **args)
+        return f.step(f.t, self.r.time[k] - self.r.time[k - 1], args.pop("z"), "marg", **args)   # t: the clock
 
 
 def _pair(compiled, recording, threshold: float | None = None):
@@ -88,7 +88,7 @@ def test_every_write_from_python_replays_first_and_makes_the_next_step_checked(c
     the R and Q it used); the next step is a checked one (it tests what was written)."""
     fast, slow = _pair(compiled, recording)
     feed = Feed(recording)
-    writes = [lambda f: f.set_R("marg", f.R("marg") * 4.0), lambda f: setattr(f, "Q", f.Q * 2.0),
+    writes = [lambda f: f.set_R("marg", f.R["marg"] * 4.0), lambda f: setattr(f, "Q", f.Q * 2.0),
               lambda f: setattr(f, "P", f.P * 1.5), lambda f: setattr(f, "x", f.x),
               lambda f: f.set_gate("marg", 0.999), lambda f: f.kernel_buffer("z", "marg"),
               lambda f: f.predict(f.t, 0.002, u=recording.gyro[0])]
@@ -167,7 +167,7 @@ def test_the_views_a_filter_hands_out_cannot_be_made_writeable(compiled, recordi
     refuses to turn a view back into a writeable array."""
     f = ekf.make_filter(compiled, recording)
     Feed(recording).step(f, 1)
-    for view in (f.x, f.P, f.y("marg"), f.S("marg"), f.R("marg"), f.Q):
+    for view in (f.x, f.P, f.y("marg"), f.S("marg"), f.R["marg"], f.Q):
         with pytest.raises(ValueError):
             view.flags.writeable = True
         with pytest.raises(ValueError):

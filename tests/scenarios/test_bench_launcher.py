@@ -36,7 +36,7 @@ def test_c_loop_does_the_work_of_compiled_step(tmp_path, launcher_compiled):
         f = launcher_compiled.filter(family, work.x0, work.P0, bench.TUNING["Q"], **bench._options(family))
         for k in range(300):
             i = work.index(k)
-            f.step(float(work.base_times[i - 1]), 1.0 / bench.RATE_HZ, work.z[i].copy(), q=work.q[i].copy())
+            f.step(float(work.base_times[i - 1]), 1.0 / bench.RATE_HZ, work.z[i].copy(), "radar", q=work.q[i].copy())
         loop.batch(family, 0, 300)
         x, P = loop.state[family]
         assert np.array_equal(f.x, x) and np.array_equal(np.ravel(f.P, "F"), P)

@@ -69,7 +69,7 @@ def test_compare_over_a_folder_writes_one_table(tmp_path, capsys):
     assert "mean total" in capsys.readouterr().out
 
 
-# ---------------------------------------------------------------------- issue 14's accuracy target
+# ---------------------------------------------------------------------- the BROAD accuracy target
 TRIALS = {"01": "01_undisturbed_slow_rotation_A", "07": "07_undisturbed_fast_rotation_B",
           "28": "28_disturbed_stationary_magnet_A"}
 #: Issue 14's anchors (BROAD total RMSE, deg): Madgwick at its best beta per trial, VQF's mean.
