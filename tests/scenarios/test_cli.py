@@ -35,3 +35,68 @@ def test_every_name_answers_its_help(capsys, kind, name):
         main([kind, name, "--help"])
     assert exit.value.code == 0
     assert f"usage: symkf {kind} {name}" in capsys.readouterr().out
+
+
+def test_version_is_the_installed_package_version(capsys):
+    from importlib.metadata import version
+
+    import symkf
+    assert symkf.__version__ == version("symkf")
+    with pytest.raises(SystemExit) as exit:
+        main(["--version"])
+    assert exit.value.code == 0
+    assert capsys.readouterr().out.startswith(f"symkf {symkf.__version__} (CasADi ")
+
+
+def test_help_of_the_top_package_names_its_sub_packages():
+    import symkf
+    for room in ("symkf.models", "symkf.codegen", "symkf.runtime", "symkf.scenarios"):
+        assert room in symkf.__doc__
+
+
+def test_options_lists_every_codegen_option_with_type_default_and_meaning(capsys):
+    from symkf.codegen.spec import codegen_options
+    assert main(["options"]) == 0
+    out = capsys.readouterr().out
+    listed = dict(re.findall(r"^(\w+)  \((.+)\)$", out, flags=re.M))
+    options = codegen_options()
+    assert set(listed) == {o.name for o in options} and len(options) > 40
+    for o in options:
+        assert listed[o.name].startswith(o.type_name + ", default ") and len(o.meaning) > 20, o.name
+    assert main(["options", "--markdown"]) == 0
+    table = [line for line in capsys.readouterr().out.splitlines() if line.startswith("| `")]
+    assert len(table) == len(options)
+
+
+def test_families_lists_every_registered_family_with_x0_P0_Q(capsys):
+    from symkf.codegen.families.framework import FAMILIES
+    from symkf.scenarios.cli_reference import FAMILY_GUIDE
+    assert set(FAMILY_GUIDE) == set(FAMILIES)
+    assert main(["families"]) == 0
+    out = capsys.readouterr().out
+    blocks = re.split(r"^(?=\w+  \(filters: )", out, flags=re.M)[1:]
+    assert {block.split()[0] for block in blocks} == set(FAMILIES)
+    for block in blocks:
+        for label in ("x0: ", "P0: ", "Q:  ", "cost: "):
+            assert label in block, (block.split()[0], label)
+
+
+def test_build_help_lists_the_paper_models_and_points_to_options(capsys):
+    from symkf.models import PAPER_MODELS
+    with pytest.raises(SystemExit) as exit:
+        main(["build", "--help"])
+    assert exit.value.code == 0
+    out = capsys.readouterr().out
+    for name in PAPER_MODELS:
+        assert re.search(rf"^  {name} +\S", out, flags=re.M), name
+    assert "symkf options" in out
+
+
+@pytest.mark.parametrize("argv", [["--help"], ["build", "--help"], ["options"], ["families"]])
+def test_help_texts_speak_to_users(capsys, argv):
+    try:
+        main(argv)
+    except SystemExit:
+        pass
+    out = capsys.readouterr().out
+    assert out and not re.search(r"issue \d|\b[0-9a-f]{7,40}\b|``|/work/|shared/data", out), out
