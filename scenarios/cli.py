@@ -138,8 +138,8 @@ def main(argv: list[str] | None = None) -> int:
     sub.add_parser("bench", help="a timing table: symkf bench --help lists them")
     options = sub.add_parser("options", help="list every codegen option with its type, default and meaning")
     options.add_argument("--markdown", action="store_true", help="as the documentation's reference table")
-    options.set_defaults(handler=lambda a: print(cli_reference.options_markdown() if a.markdown
-                                                 else cli_reference.options_text()))
+    options.set_defaults(handler=lambda a: print(cli_reference.options_markdown(), end="") if a.markdown
+                         else print(cli_reference.options_text()))
     families = sub.add_parser("families", help="list the filter families and what x0, P0 and Q mean for each")
     families.set_defaults(handler=lambda a: print(cli_reference.families_text()))
     guidance = sub.add_parser("design-guidance", help="re-solve the launcher guidance with IPOPT")
