@@ -27,7 +27,7 @@ last-half RMS attitude error is below 0.1°. UKF improvement = (MEKF - UKF) / ME
 Transient (short-horizon) metrics: RMS over the first 300 s and 1000 s, and the times after
 which the RMS-over-runs error stays below 1° and 0.1°.
 
-Filters (``--filters``, issue 11), each a scaling of the model's Table-1 noise per filter:
+Filters (``--filters``), each a scaling of the model's Table-1 noise per filter:
 - ``correct`` (default): both filters use Table 1's Q and R as they are.
 - ``paper-like``: the MEKF's process-noise density is 16 x the UKF's. Evidence: no
   discretisation of the MEKF (Euler or RK4, exact or first-order transition) moves its error by
