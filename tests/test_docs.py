@@ -81,6 +81,22 @@ def test_every_symkf_name_a_page_mentions_exists(page):
     assert not missing, f"{page.name} names {missing}, which do not exist"
 
 
+#: Classes whose members the pages name as ``Class.member``.
+CLASSES = {"Model": "symkf.models.base", "Filter": "symkf.runtime.filters", "CompiledModel": "symkf.runtime",
+           "RunResult": "symkf.runtime.runs", "CodegenConfig": "symkf.codegen.spec", "Campaign":
+           "symkf.scenarios.launcher.campaign"}
+
+
+@pytest.mark.parametrize("page", _pages(), ids=lambda p: str(p.relative_to(ROOT)))
+def test_every_class_member_a_page_mentions_exists(page):
+    text, missing = page.read_text(encoding="utf-8"), []
+    for cls_name, member in re.findall(rf"\b({'|'.join(CLASSES)})\.(\w+)", text):
+        cls = getattr(importlib.import_module(CLASSES[cls_name]), cls_name)
+        if not (hasattr(cls, member) or member in getattr(cls, "__dataclass_fields__", {})):
+            missing.append(f"{cls_name}.{member}")
+    assert not missing, f"{page.name} names {sorted(set(missing))}, which do not exist"
+
+
 def test_every_name_a_docstring_refers_to_exists():
     """``:func:`x```, ``:class:`x``` ... in every docstring of the package resolve: absolute
     (``symkf.``), relative to the package (``.module``), in the module or class, or as a class or

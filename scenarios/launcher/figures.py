@@ -4,7 +4,7 @@ One panel per case (radar rate x initial error), both filters in each:
 
 - the UKF is a wide, light solid line and the EKF a dark dashed line with markers drawn *on top*
   of it, so the EKF stays visible where the two coincide; a panel where they agree within 2 %
-  everywhere says so in its corner;
+  everywhere says so in its title;
 - the paper's whole-flight RMS (Table 3, eq (11): one number per filter and case, the paper's
   figures themselves are not available) is drawn as a dotted horizontal line per filter beside our
   RMS(t), labelled "paper Table 3", and each panel prints both filters' whole-flight RMS, ours and
@@ -57,15 +57,15 @@ def _mark_events(ax, duration: float) -> None:
             ax.axvline(t, label=key, **EVENT_STYLE[key])
 
 
-def _curves(ax, times: np.ndarray, series: dict[str, np.ndarray]) -> None:
-    """Both filters' curves, the UKF under the EKF, and a note when they coincide."""
+def _curves(ax, times: np.ndarray, series: dict[str, np.ndarray], title: str) -> None:
+    """Both filters' curves, the UKF under the EKF; the panel's title says when they coincide."""
     for family in ("ukf", "ekf"):
         ax.semilogy(times, series[family], label=family.upper(), markevery=max(1, len(times) // 25),
                     **STYLE[family])
     ekf, ukf = series["ekf"], series["ukf"]
     if np.all(np.abs(ekf - ukf) <= COINCIDE * np.maximum(np.abs(ukf), 1e-300)):
-        ax.text(0.98, 0.04, f"EKF and UKF coincide (within {COINCIDE:.0%})", transform=ax.transAxes,
-                ha="right", va="bottom", fontsize=8, color="0.25")
+        title += f" (EKF and UKF coincide within {COINCIDE:.0%})"
+    ax.set_title(title, fontsize=10)
 
 
 def _finish(plt, fig, axes, title: str, path: Path) -> None:
@@ -97,7 +97,8 @@ def plot_rms(results: list[CaseResult], state: str, ylabel: str, path: Path, con
     fig, axes, placed = _panels(plt, results)
     for result in results:
         ax = placed[result.case.label]
-        _curves(ax, result.times, {f: result.rms_in_table_units(f)[:, index] for f in ("ekf", "ukf")})
+        _curves(ax, result.times, {f: result.rms_in_table_units(f)[:, index] for f in ("ekf", "ukf")},
+                f"{result.case.label} initial error")
         paper = dict(zip(("ekf", "ukf"), L.TABLE3[(result.case.rate_hz, result.case.initial_error)][state]))
         for family in ("ukf", "ekf"):
             ax.axhline(paper[family], color=STYLE[family]["color"], lw=1.2, ls=(0, (1, 2)),
@@ -107,7 +108,6 @@ def plot_rms(results: list[CaseResult], state: str, ylabel: str, path: Path, con
                 f"paper EKF {paper['ekf']:.3g}, UKF {paper['ukf']:.3g}", transform=ax.transAxes, ha="right",
                 va="top", fontsize=8, color="0.2", bbox=dict(facecolor="white", edgecolor="0.8", alpha=0.85))
         _mark_events(ax, result.times[-1])
-        ax.set_title(f"{result.case.label} initial error")
         ax.set_ylabel(ylabel)
     _finish(plt, fig, axes, f"Paper 004 launcher: {ylabel.split(' (')[0]}, ours vs paper — {config}", path)
 
@@ -119,10 +119,10 @@ def plot_nees(results: list[CaseResult], path: Path, config: str) -> None:
     for result in results:
         ax = placed[result.case.label]
         stride = result.errors["ekf"].nees_stride
-        _curves(ax, result.times[::stride], {f: result.errors[f].mean_nees() for f in ("ekf", "ukf")})
+        _curves(ax, result.times[::stride], {f: result.errors[f].mean_nees() for f in ("ekf", "ukf")},
+                f"{result.case.label} initial error")
         low, high = consistency(result, "ekf")["nees_band_95"]
         ax.axhspan(low, high, color="tab:green", alpha=0.18, label="95 % band of the average NEES", zorder=0)
         _mark_events(ax, result.times[-1])
-        ax.set_title(f"{result.case.label} initial error")
         ax.set_ylabel("average NEES over runs")
     _finish(plt, fig, axes, f"Paper 004 launcher: consistency (NEES, 6 states) — {config}", path)
