@@ -10,7 +10,7 @@ reproductions and the ``symkf`` command line.
     from symkf.runtime import load
     tracker = load("tracker.py")                 # a file whose build() returns a Model; built if stale
     ekf = tracker.ekf(x0, P0, Q=Q)
-    ekf.step(t, dt, z, "radar")                  # predict to t + dt, update with z measured there
+    ekf.step(ekf.t, dt, z, "radar")              # predict from the filter time t to t + dt, update with z there
 
 Sub-packages (import them; this package itself only carries the version and this text):
 
