@@ -177,11 +177,21 @@ def test_the_site_builds_with_warnings_as_errors(tmp_path):
     assert (tmp_path / "site" / "reference" / "api" / "runtime" / "index.html").stat().st_size > 20_000
 
 
+#: A commit hash: 7-40 hex digits with a letter and a digit, not part of a number (7.292115e-5).
+COMMIT = re.compile(r"(?<![\w.])(?<!hash )(?=[0-9a-f]*[a-f])(?=[0-9a-f]*\d)[0-9a-f]{7,40}(?![\w.+-])")
+
+
+@pytest.mark.parametrize("page", _pages(), ids=lambda p: str(p.relative_to(ROOT)))
+def test_pages_speak_to_users_not_of_the_history(page):
+    text = page.read_text(encoding="utf-8")
+    assert not re.search(r"\bissues? \d", text), "an issue number"
+    assert not COMMIT.search(text), f"a commit hash: {COMMIT.search(text).group()}"
+
+
 def test_the_readme_is_a_user_guide():
     text = (ROOT / "README.md").read_text(encoding="utf-8")
     assert len(text.splitlines()) <= 210
     assert not re.search(r"issue \d|/work/|shared/data|\.\./", text)
-    assert not re.search(r"(?<!hash )\b(?=[0-9a-f]*[a-f])(?=[0-9a-f]*\d)[0-9a-f]{7,40}\b", text), "a commit hash"
     for needed in ("Python 3.11", "C99 compiler", "Linux", "symkf compare launcher", "python -m pytest",
                    "https://github.com/dlaidig/broad", "MIT"):
         assert needed in text, needed
