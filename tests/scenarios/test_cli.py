@@ -100,3 +100,29 @@ def test_help_texts_speak_to_users(capsys, argv):
         pass
     out = capsys.readouterr().out
     assert out and not re.search(r"issue \d|\b[0-9a-f]{7,40}\b|``|/work/|shared/data", out), out
+
+
+
+def test_the_family_guide_says_what_the_filters_take(tmp_path, write_model):
+    """What ``symkf families`` says P0 is, checked on built filters: n x n for the EKF of an ordinary
+    model, n_error x n_error (3 per quaternion) for the MEKF and the manifold UKF; the wrong size
+    is refused."""
+    from pathlib import Path
+
+    import numpy as np
+
+    from symkf.runtime import load
+    from symkf.scenarios.cli_reference import FAMILY_GUIDE
+    assert FAMILY_GUIDE["ekf"].P0.startswith("n x n")
+    tiny = load(write_model(tmp_path / "tiny.py"))
+    assert tiny.ekf([0.0, 1.0], np.eye(2), np.eye(2) * 1e-3).P.shape == (2, 2)
+    spinner = load(str(Path(__file__).resolve().parents[1] / "codegen" / "spinner_model.py"))
+    n, n_error = len(spinner.model["states"]), spinner.model["error_state_dim"]
+    assert n_error == n - 1                                   # one quaternion: 4 numbers in x, 3 in P
+    q0 = np.array([0.0, 0.0, 0.0, 1.0, *np.zeros(n - 4)])
+    for family in ("mekf", "mukf"):
+        assert "n_error x n_error" in FAMILY_GUIDE[family].P0
+        f = spinner.filter(family, q0, np.eye(n_error) * 1e-2, np.eye(n_error) * 1e-6)
+        assert f.P.shape == (n_error, n_error) and f.x.shape == (n,)
+        with pytest.raises(ValueError):
+            spinner.filter(family, q0, np.eye(n) * 1e-2, np.eye(n_error) * 1e-6)     # an n x n P0 is refused
