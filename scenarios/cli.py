@@ -20,6 +20,7 @@ import importlib
 import importlib.util
 import json
 import pkgutil
+import re
 import sys
 import textwrap
 from pathlib import Path
@@ -70,6 +71,12 @@ def _listing(kind: str) -> str:
     return "\n".join(lines)
 
 
+def _plain(doc: str) -> str:
+    """A module docstring as help text: without the reStructuredText markup of ``literals`` and
+    :role:`targets` (the docstrings also feed the API reference)."""
+    return re.sub(r":\w+:`~?([^`]+)`", r"\1", doc).replace("``", "")
+
+
 def _option(text: str) -> tuple[str, object]:
     """``KEY=VALUE`` with VALUE read as JSON when it parses (numbers), else as a string."""
     key, sep, value = text.partition("=")
@@ -106,7 +113,7 @@ def _dispatch(kind: str, argv: list[str]) -> int:
         print(f"symkf {kind}: no {WHAT[kind]} named '{name}'; choose from: {', '.join(found)}", file=sys.stderr)
         return 2
     module = importlib.import_module(found[name])
-    parser = argparse.ArgumentParser(prog=f"symkf {kind} {name}", description=module.__doc__,
+    parser = argparse.ArgumentParser(prog=f"symkf {kind} {name}", description=_plain(module.__doc__ or ""),
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     module.add_arguments(parser)
     return int(module.run(parser.parse_args(rest)) or 0)

@@ -34,7 +34,9 @@ def test_every_name_answers_its_help(capsys, kind, name):
     with pytest.raises(SystemExit) as exit:
         main([kind, name, "--help"])
     assert exit.value.code == 0
-    assert f"usage: symkf {kind} {name}" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert f"usage: symkf {kind} {name}" in out
+    assert not re.search(r"issue \d|``|:\w+:`|/work/|shared/data", out), out
 
 
 def test_version_is_the_installed_package_version(capsys):
