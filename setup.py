@@ -1,5 +1,6 @@
-"""The package list, found rather than written by hand: every folder with an ``__init__.py`` under
-the four rooms (models/, codegen/, runtime/, scenarios/) is a ``symkf.<room>...`` package, so a new
+"""The package list, found rather than written by hand: ``symkf`` itself (``package/``: its version
+and docstring), and every folder with an ``__init__.py`` under the four rooms (models/, codegen/,
+runtime/, scenarios/) is a ``symkf.<room>...`` package, so a new
 experiment folder ships in a regular install without touching pyproject.toml. The rest of the
 configuration (the rooms' ``package-dir`` mapping, package data) is in pyproject.toml."""
 from setuptools import find_packages, setup
@@ -14,4 +15,4 @@ def room_packages() -> list[str]:
             for package in [f"symkf.{room}", *(f"symkf.{room}.{name}" for name in find_packages(where=room))]]
 
 
-setup(packages=room_packages())
+setup(packages=["symkf", *room_packages()])

@@ -57,7 +57,7 @@ class UnitOptions:
     """Per-unit compiler flags (read by :func:`unit_optimization`)."""
 
     unit_optimization: dict = option(None, "{shell pattern of unit file names: -O flags} for those units "
-                                           "(default: every unit gets ``optimization``)")
+                                           "(default: every unit gets optimization)")
 
 
 declare_options(UnitOptions, "symkf.codegen.compilation")

@@ -195,9 +195,9 @@ def declare_options(options: type, reader: str, prefix: str = "") -> None:
 class NumericOptions:
     """The number format of a build (read by :class:`CodegenConfig`)."""
 
-    precision: str = option("double", "casadi_real of the build: 'double' or 'float'")
-    scaling: bool = option(None, "filters work on the scaled state x~ = (x - offset) / scale (codegen/scaling.py); "
-                                 "default: on for float, off for double")
+    precision: str = option("double", "casadi_real of the build: 'double' or 'float' (the C type of every number)")
+    scaling: bool = option(None, "filters work on the scaled state x~ = (x - offset) / scale, with the scale "
+                                 "and offset of each Model.state(); default: on for float, off for double")
 
 
 declare_options(NumericOptions, "CodegenConfig")

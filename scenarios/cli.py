@@ -1,4 +1,4 @@
-"""The ``symkf`` command line.
+"""symkf: vehicle models written once in CasADi, generated into C filters, run from Python.
 
     symkf build <model> [--force] [--out DIR] [--set KEY=VALUE ...]
                                         generate + compile a model (cached by a hash of what is
@@ -6,7 +6,10 @@
                                         marg, path/to/tracker.py or mypkg.tracker
     symkf compare <name> [options]      run a paper's experiment (symkf compare --help lists them)
     symkf bench <name> [options]        a timing table (symkf bench --help lists them)
+    symkf options [--markdown]          every codegen option for --set, with type, default and meaning
+    symkf families                      the filter families a model can ask for, and what x0, P0, Q mean
     symkf design-guidance               re-solve the launcher guidance (IPOPT)
+    symkf --version                     the installed symkf (and CasADi) version
 
 """
 from __future__ import annotations
@@ -17,6 +20,7 @@ import importlib
 import importlib.util
 import json
 import pkgutil
+import re
 import sys
 import textwrap
 from pathlib import Path
@@ -24,6 +28,7 @@ from pathlib import Path
 from symkf.codegen import BuildError, build_model, export_bundle
 from symkf.codegen.spec import ConfigError
 from symkf.models import ModelError
+from symkf.scenarios import cli_reference
 
 
 #: What a user calls the modules of each command.
@@ -66,6 +71,12 @@ def _listing(kind: str) -> str:
     return "\n".join(lines)
 
 
+def _plain(doc: str) -> str:
+    """A module docstring as help text: without the reStructuredText markup of ``literals`` and
+    :role:`targets` (the docstrings also feed the API reference)."""
+    return re.sub(r":\w+:`~?([^`]+)`", r"\1", doc).replace("``", "")
+
+
 def _option(text: str) -> tuple[str, object]:
     """``KEY=VALUE`` with VALUE read as JSON when it parses (numbers), else as a string."""
     key, sep, value = text.partition("=")
@@ -102,7 +113,7 @@ def _dispatch(kind: str, argv: list[str]) -> int:
         print(f"symkf {kind}: no {WHAT[kind]} named '{name}'; choose from: {', '.join(found)}", file=sys.stderr)
         return 2
     module = importlib.import_module(found[name])
-    parser = argparse.ArgumentParser(prog=f"symkf {kind} {name}", description=module.__doc__,
+    parser = argparse.ArgumentParser(prog=f"symkf {kind} {name}", description=_plain(module.__doc__ or ""),
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     module.add_arguments(parser)
     return int(module.run(parser.parse_args(rest)) or 0)
@@ -118,16 +129,26 @@ def main(argv: list[str] | None = None) -> int:
             return 1
     parser = argparse.ArgumentParser(prog="symkf", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--version", action="version", version=cli_reference.version_text())
     sub = parser.add_subparsers(dest="command", required=True)
-    build = sub.add_parser("build", help="generate and compile a model (paper model name, .py file or module)")
+    build = sub.add_parser("build", help="generate and compile a model (paper model name, .py file or module)",
+                           description="Generate and compile a model (cached by a hash of what is generated).",
+                           epilog=cli_reference.models_text(), formatter_class=argparse.RawDescriptionHelpFormatter)
     build.add_argument("model", help="launcher | attitude | geo_satellite | marg | path/to/model.py | package.module")
     build.add_argument("--force", action="store_true", help="rebuild even if up to date")
     build.add_argument("--out", type=Path, help="also copy the flight bundle (.c .h Makefile manifest .so) here")
     build.add_argument("--set", type=_option, action="append", metavar="KEY=VALUE",
-                       help="a codegen option, e.g. rk4_substeps=2 (each configuration has its own folder)")
+                       help="a codegen option, e.g. rk4_substeps=2 (each configuration has its own folder; "
+                            "symkf options lists them)")
     build.set_defaults(handler=_cmd_build)
     sub.add_parser("compare", help="run a paper's experiment: symkf compare --help lists them")
     sub.add_parser("bench", help="a timing table: symkf bench --help lists them")
+    options = sub.add_parser("options", help="list every codegen option with its type, default and meaning")
+    options.add_argument("--markdown", action="store_true", help="as the documentation's reference table")
+    options.set_defaults(handler=lambda a: print(cli_reference.options_markdown(), end="") if a.markdown
+                         else print(cli_reference.options_text()))
+    families = sub.add_parser("families", help="list the filter families and what x0, P0 and Q mean for each")
+    families.set_defaults(handler=lambda a: print(cli_reference.families_text()))
     guidance = sub.add_parser("design-guidance", help="re-solve the launcher guidance with IPOPT")
     guidance.set_defaults(handler=lambda a: importlib.import_module("symkf.scenarios.launcher.guidance").main())
     args = parser.parse_args(argv)

@@ -44,7 +44,7 @@ def wheel_files(tmp_path_factory) -> set[str]:
     src, out = tmp_path_factory.mktemp("src"), tmp_path_factory.mktemp("wheel")
     for name in ("pyproject.toml", "setup.py", "README.md"):
         shutil.copy(ROOT / name, src / name)
-    for room in ROOMS:                         # a copy: building writes build/ and *.egg-info beside the sources
+    for room in ("package", *ROOMS):           # a copy: building writes build/ and *.egg-info beside the sources
         shutil.copytree(ROOT / room, src / room, ignore=shutil.ignore_patterns("__pycache__"))
     proc = subprocess.run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "--no-build-isolation",
                            "--no-index", "-w", str(out), str(src)], capture_output=True, text=True)
@@ -66,4 +66,8 @@ def test_every_module_and_data_file_is_in_the_wheel(wheel_files):
     assert not missing, f"files missing from the wheel (a regular install would not have them): {missing}"
     data = {name for name in wheel_files if name.endswith(DATA_SUFFIXES)}
     assert "symkf/runtime/_fastcall.c" in data
+
+
+def test_the_top_package_carries_its_version_and_docstring(wheel_files):
+    assert "symkf/__init__.py" in wheel_files
 

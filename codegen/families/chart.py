@@ -74,7 +74,7 @@ class ManifoldOptions:
             with G_d = ∂(f_d(x̂, w) ⊟ f_d(x̂, 0))/∂w (paper 000 eqs (29), (44)); needs dt > 0.
         update: the MEKF's update of a measurement that is not a quaternion and has no noise of its
             own: "batch" (S = L Lᵀ, P - UᵀU) or "sequential" (one scalar update per component, the
-            same result to round-off for a diagonal R: :func:`sequential_update`; an R with a used
+            same result to round-off for a diagonal R: :func:`~symkf.codegen.families.mekf.sequential_update`; an R with a used
             off-diagonal entry is SYMKF_ERR_ARGS).
         transition: the MEKF's error-state transition F over a step: "step" (F = ∂/∂δ through the
             discrete step f_d itself, RK4 or exact: consistent with the mean to round-off) or

@@ -44,8 +44,9 @@ from .manifold import (ManifoldFunctions, ManifoldSymbols, chart_innovation, err
 class MekfOptions:
     """The MEKF's own codegen option (beside :class:`~symkf.codegen.families.chart.ManifoldOptions`)."""
 
-    run_variants: tuple = option((), "mask patterns with MEKF step and run kernels of their own, "
-                                     "e.g. ((3,), (4, 5, 6))")
+    run_variants: tuple = option((), "mask patterns (each a tuple of the measurement components masked to 0) "
+                                     "that get MEKF step and run kernels of their own, those updates folded away: "
+                                     "the same results, a larger bundle; e.g. ((3,), (4, 5, 6))")
 
     prefix: ClassVar[str] = "manifold_"
 

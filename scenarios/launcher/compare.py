@@ -3,7 +3,8 @@
 4 cases (20 Hz and 10 Hz radar x small eq (9) and large eq (10) initial error), N runs each,
 both filters fed the same radar draws, the whole run of each filter in one compiled C call.
 Writes to --out: rms_table.csv, rms_table.md, fig_velocity_rms.png, fig_radius_rms.png,
-fig_nees.png, summary.json. Tuning and truth: scenarios/launcher/campaign.py, truth.py.
+fig_nees.png (scenarios/launcher/figures.py), summary.json. Tuning and truth: scenarios/launcher/campaign.py,
+truth.py.
 """
 from __future__ import annotations
 
@@ -17,12 +18,11 @@ import numpy as np
 
 from symkf.models import launcher as L
 from . import campaign as C
+from . import figures
 from symkf.scenarios.campaign import ProgressBar, add_scheduler_arguments, scheduler_problem
 from .campaign import FILTERS, PRESETS, STATE_NAMES, TUNING, Campaign, CaseResult, consistency
 
 UNITS = dict(zip(STATE_NAMES, L.TABLE3_UNITS))
-EVENT_LINES = ((L.T_STAGE1_BURNOUT, "staging"), (L.T_STAGE2_IGNITION, "2nd ignition"),
-               (L.RADAR_HANDOVER_TIMES[0], "hand-over"), (L.RADAR_HANDOVER_TIMES[1], "hand-over"))
 
 
 def add_arguments(parser) -> None:
@@ -84,9 +84,10 @@ def run(args) -> int:
     (out / "rms_table.md").write_text(f"Filters: {args.filters}\n\n" + markdown_table(results, rows))
     summary = make_summary(results, args, wall, campaign)
     (out / "summary.json").write_text(json.dumps(summary, indent=1))
-    plot_rms(results, 0, "V", "Speed error RMS (m/s)", out / "fig_velocity_rms.png")
-    plot_rms(results, 3, "r", "Radius error RMS (m)", out / "fig_radius_rms.png")
-    plot_nees(results, out / "fig_nees.png")
+    config = figures.configuration(args.filters, args.runs, args.seed)
+    figures.plot_rms(results, "V", "Speed error RMS (m/s)", out / "fig_velocity_rms.png", config)
+    figures.plot_rms(results, "r", "Radius error RMS (m)", out / "fig_radius_rms.png", config)
+    figures.plot_nees(results, out / "fig_nees.png", config)
     written = time.perf_counter() - start - wall
     if not args.quiet:
         print(f"\nFilters: {args.filters}\n" + markdown_table(results, rows))
@@ -227,65 +228,3 @@ def claims(results: list[CaseResult]) -> dict:
             out[f"gap_larger_at_10Hz_{init}"] = bool(
                 np.median(ratio[slow.case.label]) > GAP_MARGIN * np.median(ratio[fast.case.label]))
     return out
-
-
-# ---------------------------------------------------------------------- figures
-def _panels(results: list[CaseResult]):
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    rates = sorted({r.case.rate_hz for r in results}, reverse=True)
-    fig, axes = plt.subplots(len(rates), 2, figsize=(11, 3.8 * len(rates)), squeeze=False, sharex=True)
-    placed = {}
-    for result in results:
-        row = rates.index(result.case.rate_hz)
-        col = 0 if result.case.initial_error == "small" else 1
-        placed[result.case.label] = axes[row, col]
-    return plt, fig, axes, placed
-
-
-def _mark_events(ax, duration: float) -> None:
-    for t, label in EVENT_LINES:
-        if t <= duration:
-            ax.axvline(t, color="0.6", lw=0.8, ls=":" if label == "hand-over" else "-")
-
-
-def plot_rms(results: list[CaseResult], index: int, state: str, ylabel: str, path: Path) -> None:
-    plt, fig, axes, placed = _panels(results)
-    for result in results:
-        ax = placed[result.case.label]
-        for family, style in (("ekf", "--"), ("ukf", "-")):
-            ax.semilogy(result.times, result.rms_in_table_units(family)[:, index], style, lw=1, label=family.upper())
-        _mark_events(ax, result.times[-1])
-        ax.set_title(f"{result.case.label} initial error ({result.errors['ekf'].runs} runs)")
-        ax.set_ylabel(ylabel)
-        ax.legend(loc="upper right")
-    _label_time_axis(axes)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-
-
-def _label_time_axis(axes) -> None:
-    """The bottom row's time axis, with the key to the event lines drawn by _mark_events."""
-    for ax in axes[-1]:
-        ax.set_xlabel("time (s)   | staging / 2nd ignition,  : radar hand-over")
-
-
-def plot_nees(results: list[CaseResult], path: Path) -> None:
-    plt, fig, axes, placed = _panels(results)
-    for result in results:
-        ax = placed[result.case.label]
-        stride = result.errors["ekf"].nees_stride
-        for family, style in (("ekf", "--"), ("ukf", "-")):
-            ax.semilogy(result.times[::stride], result.errors[family].mean_nees(), style, lw=1, label=family.upper())
-        low, high = consistency(result, "ekf")["nees_band_95"]
-        ax.axhspan(low, high, color="tab:green", alpha=0.2, label="95 % band")
-        _mark_events(ax, result.times[-1])
-        ax.set_title(f"{result.case.label}: average NEES (6 states)")
-        ax.set_ylabel("average NEES over runs")
-        ax.legend(loc="upper right")
-    _label_time_axis(axes)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)

@@ -9,8 +9,8 @@
   C fast path of runtime/fastcall.py; each sample's arrays made before the timed loop, as a
   sensor driver hands them over), ``step_api_indexed`` (the same calls in a loop that indexes the
   recording's arrays for each sample: numpy's ``a[k]`` included, about 1,100 instructions per
-  row view; the figure quoted before this split), ``step_api_python`` (the calls of
-  ``step_api`` with the fast path off: the Python contract path, the path before the C fast path), ``run``
+  row view), ``step_api_python`` (the calls of
+  ``step_api`` with the fast path off: the Python contract path), ``run``
   (``Filter.run``: the C run loop over a whole trial), ``numpy_reference`` (``ReferenceGradientDescent.run``,
   on the first ``--reference-samples`` samples). The three ``step_api`` loops are timed in
   alternate repeats (same machine load).

@@ -1,7 +1,10 @@
 """Paper 001, Fig 3 on real recordings: Euler angles (5) for several gains β, accuracy and oscillation.
 
-    symkf compare marg --data ../shared/data/broad/01_undisturbed_slow_rotation_A.mat \\
+    symkf compare marg --data broad/01_undisturbed_slow_rotation_A.mat \\
         --beta 0.01,0.5 --out results/marg [--sweep] [--form simple|full] [--mode marg|imu]
+
+(BROAD's trials, CC BY 4.0: https://github.com/dlaidig/broad; the x-io Fusion example CSV, MIT:
+https://github.com/xioTechnologies/Fusion.)
 
 For every β: the Euler angles (5) of the estimate vs time (with the optical reference when the
 recording has one; BROAD trials do, the x-io CSV does not), the BROAD error metric (total,
@@ -23,7 +26,7 @@ trial, the total / heading / inclination RMSE of Madgwick's filter at β = 0.041
 EKF of ``models/marg_mekf.py`` (one parameter set for every trial); ``summary.json`` holds the
 rows and ``mean_total_rmse_deg`` (filter name -> mean total RMSE over the trials):
 
-    symkf compare marg --data ../shared/data/broad --out results/marg
+    symkf compare marg --data broad --out results/marg
 
 Both are also given for the optical reference (NaN gaps linearly interpolated) as the floor of
 real motion. ``--sweep`` adds RMSE and oscillation vs β on a log grid and marks the β of least
@@ -41,7 +44,8 @@ from symkf.models.marg import ALPHA_DEFAULT, BETA_MADGWICK
 from symkf.runtime import load
 from symkf.scenarios.marg.filter import make_filter
 from symkf.scenarios.marg import mekf
-from symkf.scenarios.marg.data import Recording, broad_trials, data_dir, load_recording, run_recording
+from symkf.scenarios.marg.data import (WHERE_BROAD, WHERE_XIO, Recording, broad_trials, data_dir, load_recording,
+                                       run_recording)
 from symkf.scenarios.marg.broad_metric import broad_errors, error_rotation_vectors, euler_angles, from_enu, to_enu
 
 DEFAULT_DATA = data_dir() / "broad" / "01_undisturbed_slow_rotation_A.mat"
@@ -215,7 +219,7 @@ def run(args) -> int:
     try:
         recording = load_recording(args.data)
     except (FileNotFoundError, ValueError) as exc:
-        print(f"symkf compare marg: {exc} (recordings live in ../shared/data, see its README)")
+        print(f"symkf compare marg: {exc}\n  {WHERE_BROAD}\n  {WHERE_XIO}")
         return 1
     compiled = load("marg")
     args.out.mkdir(parents=True, exist_ok=True)
@@ -308,7 +312,7 @@ def run_trials(args) -> int:
         paths = broad_trials(args.data)
         recordings = [load_recording(path) for path in paths]
     except (FileNotFoundError, ValueError) as exc:
-        print(f"symkf compare marg: {exc} (BROAD trials live in ../shared/data/broad, see its README)")
+        print(f"symkf compare marg: {exc}\n  {WHERE_BROAD}")
         return 1
     missing = [r.name for r in recordings if r.reference is None]
     if missing:
@@ -325,7 +329,7 @@ def run_trials(args) -> int:
             return 1
     summary = {"data": str(args.data), "trials": [str(p) for p in paths], "form": args.form, "rows": rows,
                "mean_total_rmse_deg": {f: float(np.mean([r[f]["total"] for r in rows])) for f in FILTERS},
-               "metric": "BROAD RMSE over movement phases, deg (../shared/data/README.md)",
+               "metric": "BROAD RMSE over movement phases, deg (the benchmark's own error metric)",
                "note": "madgwick_best is an oracle: its beta is chosen per trial against the reference; "
                        "mekf uses one parameter set (models/marg_mekf.py, scenarios/marg/mekf.py) for every trial"}
     args.out.mkdir(parents=True, exist_ok=True)

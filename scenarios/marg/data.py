@@ -21,6 +21,13 @@ from symkf.runtime.runs import RunResult
 from symkf.scenarios.marg.filter import initial_orientation, samples
 
 
+#: Where a user gets the recordings (said by every error and test skip that needs one).
+WHERE_BROAD = ("BROAD trials (Laidig et al. 2021, CC BY 4.0): download from https://github.com/dlaidig/broad "
+               "and pass --data (or set $SYMKF_DATA_DIR to a folder holding broad/)")
+WHERE_XIO = ("x-io Fusion example recording (MIT): sensor_data.csv of https://github.com/xioTechnologies/Fusion, "
+             "saved as fusion_sensor_data.csv in $SYMKF_DATA_DIR")
+
+
 def data_dir() -> Path:
     """``$SYMKF_DATA_DIR``, else ``../shared/data`` beside a source checkout, else ``./data``."""
     env = os.environ.get("SYMKF_DATA_DIR")

@@ -1,7 +1,8 @@
 """BROAD as a user gets it: HDF5 trials (h5py) read like the .mat ones, and ``symkf compare marg
 --data DIR`` over a folder of trials writes one table with the generated MARG MEKF.
 
-Skipped with a reason when ../shared/data/broad (or h5py) is absent.
+Skipped with a reason saying where to get them when the BROAD trials (https://github.com/dlaidig/broad)
+or h5py are absent.
 """
 import json
 
@@ -9,13 +10,13 @@ import numpy as np
 import pytest
 
 from symkf.scenarios.cli import main
-from symkf.scenarios.marg.data import broad_trials, data_dir, load_recording
+from symkf.scenarios.marg.data import WHERE_BROAD, broad_trials, data_dir, load_recording
 
 BROAD = data_dir() / "broad"
 TRIAL_07 = BROAD / "07_undisturbed_fast_rotation_B"
 h5py = pytest.importorskip("h5py", reason="h5py is not installed (pip install 'symkf[broad]')")
 needs_broad = pytest.mark.skipif(not TRIAL_07.with_suffix(".hdf5").exists(),
-                                 reason=f"BROAD trial {TRIAL_07}.hdf5 is absent (../shared/data not provided)")
+                                 reason=f"BROAD trial {TRIAL_07}.hdf5 is absent; {WHERE_BROAD}")
 
 
 @needs_broad
@@ -78,7 +79,7 @@ VQF_MEAN_DEG = 2.59
 
 
 @pytest.mark.skipif(not all((BROAD / f"{name}.mat").exists() for name in TRIALS.values()),
-                    reason=f"BROAD trials {sorted(TRIALS.values())} are absent from {BROAD}")
+                    reason=f"BROAD trials {sorted(TRIALS.values())} are absent from {BROAD}; {WHERE_BROAD}")
 def test_mekf_one_parameter_set_beats_vqf_mean_and_madgwick_best_beta():
     """models/marg_mekf.py with scenarios/marg/mekf.py's one parameter set over the three trials:
     mean total RMSE <= VQF's 2.59 deg and every trial below Madgwick at its (oracle) best beta."""

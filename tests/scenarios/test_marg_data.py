@@ -1,6 +1,7 @@
-"""The gradient-descent filter on real recordings (../shared/data): loaders, three paths, BROAD metric.
+"""The gradient-descent filter on real recordings (BROAD trials, the x-io example): loaders, three paths, BROAD metric.
 
-Skipped with a reason when ../shared/data (relative to the project root) is absent.
+Skipped with a reason saying where to get the recordings when they are absent (BROAD:
+https://github.com/dlaidig/broad; x-io: https://github.com/xioTechnologies/Fusion).
 """
 import numpy as np
 import pytest
@@ -10,16 +11,16 @@ from scipy.spatial.transform import Rotation
 from symkf.runtime import load
 from symkf.runtime.reference.gradient_descent import ReferenceGradientDescent
 from symkf.scenarios.marg.filter import initial_orientation, make_filter, samples
-from symkf.scenarios.marg.data import data_dir, load_recording, run_recording
+from symkf.scenarios.marg.data import WHERE_BROAD, WHERE_XIO, data_dir, load_recording, run_recording
 from symkf.scenarios.marg.broad_metric import broad_error_angles, broad_errors, error_rotation_vectors, to_enu
 
 BROAD_TRIAL = data_dir() / "broad" / "01_undisturbed_slow_rotation_A.mat"
 XIO_CSV = data_dir() / "fusion_sensor_data.csv"
 
 needs_broad = pytest.mark.skipif(not BROAD_TRIAL.exists(),
-                                 reason=f"BROAD recording {BROAD_TRIAL} is absent (../shared/data not provided)")
+                                 reason=f"BROAD recording {BROAD_TRIAL} is absent; {WHERE_BROAD}")
 needs_xio = pytest.mark.skipif(not XIO_CSV.exists(),
-                               reason=f"x-io recording {XIO_CSV} is absent (../shared/data not provided)")
+                               reason=f"x-io recording {XIO_CSV} is absent; {WHERE_XIO}")
 
 
 @pytest.fixture(scope="module")

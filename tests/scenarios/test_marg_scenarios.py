@@ -1,13 +1,14 @@
 """``symkf compare marg`` on real recordings: summary.json content and the paper's Fig 3 claim.
 
-Skipped with a reason when ../shared/data (relative to the project root) is absent.
+Skipped with a reason saying where to get the recordings when they are absent (BROAD:
+https://github.com/dlaidig/broad; x-io: https://github.com/xioTechnologies/Fusion).
 """
 import json
 
 import numpy as np
 import pytest
 
-from symkf.scenarios.marg.data import data_dir
+from symkf.scenarios.marg.data import WHERE_BROAD, WHERE_XIO, data_dir
 from symkf.scenarios import cli
 from symkf.scenarios.marg.compare import oscillation
 
@@ -16,7 +17,7 @@ XIO_CSV = data_dir() / "fusion_sensor_data.csv"
 
 
 @pytest.mark.skipif(not BROAD_TRIAL.exists(),
-                    reason=f"BROAD recording {BROAD_TRIAL} is absent (../shared/data not provided)")
+                    reason=f"BROAD recording {BROAD_TRIAL} is absent; {WHERE_BROAD}")
 def test_compare_on_broad_writes_summary_and_shows_oscillation_growing_with_beta(tmp_path):
     assert cli.main(["compare", "marg", "--data", str(BROAD_TRIAL), "--beta", "0.01,0.5",
                      "--out", str(tmp_path), "--no-plots"]) == 0
@@ -37,7 +38,7 @@ def test_compare_on_broad_writes_summary_and_shows_oscillation_growing_with_beta
     assert high["oscillation"]["error_hf_rms_deg"] > 1.5 * low["oscillation"]["error_hf_rms_deg"]
 
 
-@pytest.mark.skipif(not XIO_CSV.exists(), reason=f"x-io recording {XIO_CSV} is absent (../shared/data not provided)")
+@pytest.mark.skipif(not XIO_CSV.exists(), reason=f"x-io recording {XIO_CSV} is absent; {WHERE_XIO}")
 def test_compare_on_xio_without_reference(tmp_path):
     assert cli.main(["compare", "marg", "--data", str(XIO_CSV), "--beta", "0.01,0.5", "--out", str(tmp_path),
                      "--no-plots"]) == 0

@@ -1,0 +1,50 @@
+"""The launcher figures are drawn for a report: the EKF on top of the UKF, the paper's Table 3 values
+beside ours, event lines and the NEES band keyed in one legend outside the panels, and a title naming
+the filter configuration and seed (checked on the figure objects before they are saved)."""
+import pytest
+
+from symkf.models import launcher as L
+from symkf.scenarios.cli import main
+from symkf.scenarios.launcher import figures
+
+
+@pytest.fixture(scope="module")
+def drawn(tmp_path_factory, launcher_compiled):
+    """{file name: (figure, its axes)} of a short `symkf compare launcher` (20 Hz, 2 runs, 140 s: through staging)."""
+    out, captured = tmp_path_factory.mktemp("figures"), {}
+    finish = figures._finish
+
+    def keep(plt, fig, axes, title, path):
+        captured[path.name] = (fig, axes, title)
+        finish(plt, fig, axes, title, path)
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(figures, "_finish", keep)
+        assert main(["compare", "launcher", "--runs", "2", "--rates", "20", "--duration", "140", "--seed", "7",
+                     "--out", str(out), "--quiet"]) == 0
+    return captured
+
+
+def test_every_figure_names_its_configuration_and_keys_its_lines_outside_the_panels(drawn):
+    assert set(drawn) == {"fig_velocity_rms.png", "fig_radius_rms.png", "fig_nees.png"}
+    for name, (fig, axes, title) in drawn.items():
+        assert "filters 'correct'" in title and "2 Monte Carlo runs" in title and "seed 7" in title, name
+        (legend,) = fig.legends
+        labels = [text.get_text() for text in legend.get_texts()]
+        assert {"EKF", "UKF", "staging / 2nd ignition"} <= set(labels), (name, labels)
+        assert all(ax.get_legend() is None for ax in axes.ravel()), name      # no legend over the data
+
+
+def test_the_ekf_is_drawn_over_the_ukf(drawn):
+    for name, (fig, axes, _) in drawn.items():
+        for ax in axes.ravel():
+            lines = {line.get_label(): line for line in ax.get_lines()}
+            assert lines["EKF"].get_zorder() > lines["UKF"].get_zorder(), name
+            assert lines["EKF"].get_marker() not in (None, "None", ""), name
+
+
+def test_the_rms_figures_put_the_papers_table_3_beside_ours(drawn):
+    fig, axes, _ = drawn["fig_velocity_rms.png"]
+    small = axes[0, 0]
+    paper = {line.get_label(): line.get_ydata()[0] for line in small.get_lines() if line.get_label().startswith("paper")}
+    assert sorted(paper.values()) == sorted(L.TABLE3[(20, "small")]["V"])
+    assert any("whole-flight RMS" in text.get_text() for text in small.texts)
