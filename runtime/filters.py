@@ -26,6 +26,7 @@ from symkf.codegen.spec import FilterSpec
 from . import calls, contract, runs
 from .buffers import fits, kernel_roles, make_buffers
 from .contract import covariance, read_only
+from .covariance_form import CholeskyForm
 from .fastpath import FastPath
 from .runs import RunResult
 from .state_scaling import StateScaling
@@ -61,6 +62,7 @@ class Filter:
         self.kernels = {name: self._backend.kernels[name] for name in self.spec.kernel_names()}
         self._dtype = getattr(self._backend, "dtype", np.dtype(np.float64))
         self._scaling = StateScaling.of(self.model)
+        self._form = CholeskyForm.of(self.spec)     # None: the kernels carry P itself, else its factor
         self._buffers, self.measurements = make_buffers(self.spec, self.kernels, self._dtype)
         self._fast = FastPath(self)         # its data made with the buffers, its calls bound by _bind
         self.n = self._buffers["x"].size
@@ -72,7 +74,7 @@ class Filter:
 
     # ------------------------------------------------------------------ copies
     #: What a copy shares with its original: the compiled model and what describes it (read only).
-    _SHARED = frozenset({"spec", "family", "model", "_backend", "kernels", "_dtype", "_scaling"})
+    _SHARED = frozenset({"spec", "family", "model", "_backend", "kernels", "_dtype", "_scaling", "_form"})
     #: What a copy binds afresh: calls into the C library hold pointers to the original's buffers.
     _BOUND = frozenset({"step", "_calls", "_fast", "_views"})
 
@@ -168,14 +170,23 @@ class Filter:
     def P(self) -> np.ndarray:
         """The covariance (read-only view, or physical copy for a scaled build); set it with a
         symmetric PSD matrix."""
-        if self._scaling is None:
+        if self._scaling is None and self._form is None:
             return self._views["P"]
-        return read_only(self._scaling.P_from_kernel(self._buffers["P"]))
+        P = self._buffers["P"] if self._form is None else self._form.from_kernel(self._buffers["P"])
+        return read_only(P if self._scaling is None else self._scaling.P_from_kernel(P))
 
     @P.setter
     def P(self, value) -> None:
         P = covariance("P", value, self._buffers["P"].shape[0])
-        self._write_state("P", P if self._scaling is None else self._scaling.P_to_kernel(P))
+        P = P if self._scaling is None else self._scaling.P_to_kernel(P)
+        self._write_state("P", P if self._form is None else self._form.to_kernel(P))
+
+    @property
+    def factor(self) -> np.ndarray:
+        """The lower factor L, P = L L^T, a square-root filter carries (of P~ if scaled)."""
+        if self._form is None:
+            raise ValueError(f"factor: filter '{self.family}' carries P itself, not a factor")
+        return self._views["P"]
 
     @property
     def Q(self) -> np.ndarray:

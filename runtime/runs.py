@@ -127,6 +127,8 @@ def run(filt, name: str, per_step: dict, given: dict, u, nan: str) -> RunResult:
             filt.t + float(np.sum(per_step["dt"]))
     x = histories["x"]
     P = np.transpose(histories["P"], (0, 2, 1)) if "P" in histories else None
+    if P is not None and filt._form is not None:          # a square-root filter's factors
+        P = filt._form.from_kernel(P)
     if filt._scaling is not None:
         x, P = filt._scaling.x_from_kernel(x), None if P is None else filt._scaling.P_from_kernel(P)
     return RunResult(np.asarray(x, dtype=float), None if P is None else np.asarray(P, dtype=float), status)
