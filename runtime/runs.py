@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from symkf.codegen.spec import STATUS_GATED
-from . import contract
+from . import contract, precision
 from .buffers import buffer, fits
 
 
@@ -127,6 +127,7 @@ def run(filt, name: str, per_step: dict, given: dict, u, nan: str) -> RunResult:
             filt.t + float(np.sum(per_step["dt"]))
     x = histories["x"]
     P = np.transpose(histories["P"], (0, 2, 1)) if "P" in histories else None
+    precision.warn_unresolved(filt, x, P)                 # a float build: says which state float cannot hold
     if P is not None and filt._form is not None:          # a square-root filter's factors
         P = filt._form.from_kernel(P)
     if filt._scaling is not None:
