@@ -27,7 +27,7 @@ def table(runs: int, counts=(1, 3), seed: int = 2005, rates=(20, 10)) -> dict:
                 continue
             whole = result.whole_flight("ekf")
             nees = C.consistency(result, "ekf")
-            per_run = result.per_run["ekf"]
+            per_run = result.per_run("ekf")
             out.setdefault(count, {})[f"{result.case.rate_hz}Hz"] = {
                 "r_rms_m": float(whole[3]), "V_rms_m_s": float(whole[0]), "mean_nees": nees["mean_nees"],
                 "inside_band": nees["fraction_inside_band"],
