@@ -38,11 +38,25 @@ class IteratedOptions:
 
     @classmethod
     def of(cls, config: CodegenConfig) -> "IteratedOptions":
-        chosen = cls(int(config.get("ekf_iterations", 1)), float(config.get("ekf_iteration_tolerance", 0.0)))
+        p = cls.prefix
+        chosen = cls(int(config.get(f"{p}iterations", 1)), float(config.get(f"{p}iteration_tolerance", 0.0)))
         if chosen.iterations < 1 or chosen.iterations > 50 or not chosen.iteration_tolerance >= 0:
-            raise ConfigError(f"ekf_iterations must be 1..50 and ekf_iteration_tolerance >= 0; got "
+            raise ConfigError(f"{p}iterations must be 1..50 and {p}iteration_tolerance >= 0; got "
                               f"{chosen.iterations}, {chosen.iteration_tolerance}")
         return chosen
+
+    def still_moving(self, step, previous, sigma) -> ca.SX:
+        """1 if some component of ``step - previous`` exceeds the tolerance times its sigma."""
+        n = step.shape[0]
+        return sum((ca.fabs(step[j] - previous[j]) > self.iteration_tolerance * sigma[j] for j in range(n)), 0) > 0
+
+
+@dataclass(frozen=True)
+class MekfIteratedOptions(IteratedOptions):
+    """The MEKF's iterated-update options (``mekf_iterations``, ``mekf_iteration_tolerance``): the
+    same Gauss-Newton iterations on the error state delta of the prior's chart (codegen/families/mekf.py)."""
+
+    prefix: ClassVar[str] = "mekf_"
 
 
 def _linearised_step(fns: ModelFunctions, symbols: Symbols, name: str, msym: dict, wrap, x_prior, P, x_i):
@@ -62,12 +76,11 @@ def iterated_update_expr(symbols: Symbols, fns: ModelFunctions, name: str, msym:
     """The iterated update: the outputs of ``kalman.ekf_update_expr`` (x+, P+, y, S, ok, nis)."""
     options = IteratedOptions.of(fns.config)
     n = symbols.model.nx
-    sigma = [ca.sqrt(linalg.guarded(P[j, j], P[j, j] > 0)) for j in range(n)]
+    sigma = prior_sigmas(P)
     x_next, K, H, y, S, L, ok = _linearised_step(fns, symbols, name, msym, wrap, x, P, x)
     x_i, active = x, ca.SX(1)
     for _ in range(options.iterations - 1):
-        moved = sum((ca.fabs(x_next[j] - x_i[j]) > options.iteration_tolerance * sigma[j] for j in range(n)), 0)
-        active = active * (moved > 0)                                   # once still: x, K, H kept
+        active = active * options.still_moving(x_next, x_i, sigma)      # once still: x, K, H kept
         x_i = linalg.select(active, x_next, x_i)
         step = _linearised_step(fns, symbols, name, msym, wrap, x, P, x_i)
         x_next = linalg.select(active, step[0], x_next)
@@ -80,5 +93,10 @@ def iterated_update_expr(symbols: Symbols, fns: ModelFunctions, name: str, msym:
     return x_next, P_new, y, S, ok * linalg.psd_flag(P), nis
 
 
-def iterations(config: CodegenConfig) -> int:
-    return IteratedOptions.of(config).iterations
+def iterations(config: CodegenConfig, options: type = IteratedOptions) -> int:
+    return options.of(config).iterations
+
+
+def prior_sigmas(P) -> list:
+    """sqrt(P_jj) (1 where P_jj <= 0): the scale of the tolerance test."""
+    return [ca.sqrt(linalg.guarded(P[j, j], P[j, j] > 0)) for j in range(P.shape[0])]
