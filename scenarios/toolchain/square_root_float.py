@@ -6,7 +6,8 @@ Rows of ``symkf bench float`` (:mod:`symkf.scenarios.toolchain.float_bench`):
 - launcher (paper 004), the 20 Hz small-error case of the campaign (preset ``correct``, its
   draws): ``runs`` Monte Carlo runs of the whole flight through each filter of each build
   (double; float with the model's declared scales and offsets; float without them,
-  ``scaling=False``, as a new user's model would be); whole-flight RMS of r, refused steps.
+  ``scaling=False``, as a new user's model would be); whole-flight RMS of r, refused steps and the
+  wall seconds of the compiled runs (``filter_seconds``: the square-root forms' cost beside the plain).
 - a user model file (``--model FILE``): the file's ``build()`` gives the model (its
   ``filters`` name the families compared) and its ``bench_case(rng)`` the record: a dict with
   ``x0, P0, Q, times, z, mask, truth, measurement`` (truth: (N, n), row k the state at times[k]),
@@ -22,6 +23,7 @@ from __future__ import annotations
 
 import copy
 import runpy
+import time
 
 import numpy as np
 
@@ -61,17 +63,20 @@ def launcher(runs: int, seed: int = 2005) -> dict:
             base = family[2:] if family.startswith("sr") else family
             f = compiled.filter(family, x0, P0, tuning["Q"] * tuning[f"{base}_q_scale"],
                                 **({"kappa": tuning["kappa"]} if base == "ukf" else {}))
-            squared, refused = [], 0
+            squared, refused, seconds = [], 0, 0.0
             for z in draws:
                 f.x, f.P = x0, P0
                 f.t = 0.0
+                start = time.perf_counter()
                 result = f.run(times, z, measurement, q=track.station_params())
+                seconds += time.perf_counter() - start
                 refused += int(np.count_nonzero(result.status))
                 squared.append(state_error(truth, result.x, C.ANGLE_STATES) ** 2)
             rms = np.sqrt(np.mean(squared, axis=0))
             whole = C.whole_flight_mean(np.where(C.ANGLE_STATES, np.degrees(rms), rms))
             out.setdefault(family, {})[label] = {"r_rms_m": float(whole[3]), "V_rms_m_s": float(whole[0]),
-                                                 "refused_steps": refused, "runs": runs}
+                                                 "refused_steps": refused, "runs": runs,
+                                                 "filter_seconds": seconds}
     return out
 
 
