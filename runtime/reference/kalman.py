@@ -12,6 +12,7 @@ from scipy.linalg import cho_factor, cho_solve, solve_triangular
 from symkf.codegen import make_config
 from symkf.codegen.model_functions import ModelFunctions
 from symkf.models import get_model
+from symkf.models.estimation import augmented
 from .common import _init_filter_state, _sym, wrap_angle
 
 
@@ -22,7 +23,7 @@ class ReferenceFilter:
                  kappa: float = 0.0, **overrides):
         if family not in ("ekf", "ukf"):
             raise ValueError("family: expected 'ekf' or 'ukf'")
-        model = get_model(model_name)
+        model = augmented(get_model(model_name))          # estimated parameters as states, as generated
         self.functions = ModelFunctions(model, make_config(model_name, **overrides))
         self.propagation = self.functions.for_filter(family)     # the family's discretisation
         self.family, self.kappa = family, float(kappa)
