@@ -78,3 +78,16 @@ def test_bad_declarations_are_refused():
         estimate(model, "mass", sigma=1.0)
     with pytest.raises(ModelError, match="sigma > 0"):
         estimate(model, "drag", sigma=0.0)
+
+
+@pytest.mark.slow
+def test_launcher_with_a_5_percent_thrust_mismatch():
+    """scenarios/launcher/estimated_thrust.py, one run: the model as it is loses the flight in
+    stage 2; with the mass flow estimated the errors are those of a correct model."""
+    from symkf.scenarios.launcher.estimated_thrust import MISMATCH, table
+    result = table(1)
+    for family in ("ekf", "ukf"):
+        wrong, fixed = result[family]["model as is"], result[family]["estimated"]
+        assert wrong["V_final_m_s"] > 100 and fixed["V_final_m_s"] < 0.1, result[family]
+        assert fixed["r_rms_m"] < 1.0 and fixed["failed_steps"] == 0
+        assert abs(fixed["factor_mean"] - MISMATCH) < 3 * fixed["factor_sigma_mean"] + 1e-4
