@@ -43,7 +43,7 @@ FRAMEWORK_MODULES = ("symkf.codegen.build_folders", "symkf.codegen.c_backend.api
                      "symkf.codegen.model_functions",
                      "symkf.codegen.lifecycle", "symkf.codegen.linalg", "symkf.codegen.manifest",
                      "symkf.codegen.scaling", "symkf.codegen.spec", "symkf.codegen.square_root",
-                     "symkf.models.base")
+                     "symkf.models.base", "symkf.models.estimation")
 
 
 def _source_digest(module: types.ModuleType) -> str:
