@@ -8,9 +8,9 @@ non-additive noise through G = df/dw): the two agree to round-off in double. Wha
 how the covariance is formed, never as a difference of products of the state's numbers:
 
 - prediction: L- = qr{[sqrt(W_1) (Y_1..2n - x-), sqrt(dt) chol(Q) (or G chol(Q))]}, then
-  cholupdate(L-, Y_0 - x-, W_0) (a downdate when kappa < 0), eq. (21)-(22) of the paper;
-- update: S_z = qr{[sqrt(W_1) (Z_1..2n - z-), chol(R)]} and cholupdate with Z_0 - z-, eq. (24)-(25);
-  K = P_xz S_z^-T S_z^-1, x+ = x- + K y, L+ = cholupdate(L-, K S_z, -1), m downdates, eq. (26)-(28).
+  cholupdate(L-, Y_0 - x-, W_0) (a downdate when kappa < 0);
+- update: S_z = qr{[sqrt(W_1) (Z_1..2n - z-), chol(R)]} and cholupdate with Z_0 - z-;
+  K = P_xz S_z^-T S_z^-1, x+ = x- + K y, L+ = cholupdate(L-, K S_z, -1), m downdates.
 
 A downdate that leaves a matrix that is not positive definite is SYMKF_ERR_NOT_PD with x and L
 unchanged; masks, gates and status codes are those of ``framework.py``. The kernels read only
@@ -53,7 +53,7 @@ def noise_factor(symbols: Symbols, fns: ModelFunctions, Q, x, t, dt):
 
 
 def weighted_factor(weights: list, deviations: list[ca.SX], extra: ca.SX):
-    """Eq. (21)-(22): the factor of sum_i W_i d_i d_i^T + extra extra^T, by QR of the columns
+    """The factor of sum_i W_i d_i d_i^T + extra extra^T, by QR of the columns
     sqrt(W_i) d_i (i >= 1, equal weights) and extra, then a rank-one update (W_0 >= 0) or
     downdate (W_0 < 0) with d_0. Returns the factor and a 0/1 flag (the downdate succeeded)."""
     root = ca.sqrt(ca.fmax(weights[1], 0))
@@ -119,7 +119,7 @@ def srukf_update_expr(symbols: Symbols, fns: ModelFunctions, name: str, msym: di
     e = linalg.solve_lower(S_z, y)
     x_new = x + V.T @ e
     L_new, ok_d = L, ca.SX(1)
-    for j in range(V.shape[0]):                              # eq. (28): m downdates by the columns of U
+    for j in range(V.shape[0]):                              # m downdates by the columns of U = K S_z
         L_new, ok_j = square_root.cholesky_update(L_new, V[j, :].T, -1)
         ok_d = ok_d * ok_j
     S = square_root.outer_of(S_z)

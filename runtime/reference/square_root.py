@@ -1,7 +1,7 @@
 """NumPy reference of the square-root filters (codegen/families/srukf.py, srekf.py): the factor
 L of P = L L^T carried, QR (numpy.linalg.qr) and rank-one Cholesky updates/downdates written out.
 
-- SR-UKF: Van der Merwe & Wan, ICASSP 2001, Algorithm 3.1 (eqs (21)-(28)), Julier weights;
+- SR-UKF: Van der Merwe & Wan, ICASSP 2001, Algorithm 3.1 (its time and measurement updates), Julier weights;
 - SR-EKF: the array form (Kailath, Sayed & Hassibi, Linear Estimation, sec. 12.3): prediction
   L- = qr[F L, sqrt(Q_d)], update by triangularising [[chol(R), H L], [0, L]].
 
