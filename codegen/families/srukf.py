@@ -5,7 +5,7 @@ unscented Kalman filter for state and parameter estimation", ICASSP 2001, Algori
 The same estimator as the UKF (Julier sigma points x, x +/- sqrt(n + kappa) L_i, weights
 W_0 = kappa/(n + kappa), W_i = 1/(2(n + kappa)); angle components averaged on the circle;
 non-additive noise through G = df/dw): the two agree to round-off in double. What differs is
-how the covariance is formed, never as a difference of products of the state's numbers:
+that P is never formed: the factor is made and changed directly,
 
 - prediction: L- = qr{[sqrt(W_1) (Y_1..2n - x-), sqrt(dt) chol(Q) (or G chol(Q))]}, then
   cholupdate(L-, Y_0 - x-, W_0) (a downdate when kappa < 0);
