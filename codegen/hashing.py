@@ -42,7 +42,8 @@ FRAMEWORK_MODULES = ("symkf.codegen.build_folders", "symkf.codegen.c_backend.api
                      "symkf.codegen.generation", "symkf.codegen.hashing", "symkf.codegen.families.framework",
                      "symkf.codegen.model_functions",
                      "symkf.codegen.lifecycle", "symkf.codegen.linalg", "symkf.codegen.manifest",
-                     "symkf.codegen.scaling", "symkf.codegen.spec", "symkf.models.base")
+                     "symkf.codegen.scaling", "symkf.codegen.spec", "symkf.codegen.square_root",
+                     "symkf.models.base", "symkf.models.estimation")
 
 
 def _source_digest(module: types.ModuleType) -> str:

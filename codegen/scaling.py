@@ -33,6 +33,7 @@ import numpy as np
 from symkf.models import Model
 from symkf.models.base import Variable
 from symkf.models.errors import ModelError
+from symkf.models.estimation import augmented
 
 
 def scaling_arrays(model: Model) -> tuple[np.ndarray, np.ndarray]:
@@ -75,5 +76,7 @@ def _scaled_variable(v: Variable, scale: float, offset: float) -> Variable:
 
 
 def model_for(model: Model, config) -> Model:
-    """The model a build of ``config`` generates from: scaled when ``config.scaled``."""
+    """The model a build of ``config`` generates from: its estimated parameters as states
+    (models/estimation.py), then scaled when ``config.scaled``."""
+    model = augmented(model)
     return scaled_model(model) if config.scaled else model

@@ -292,6 +292,8 @@ class FilterSpec:
         measurement_inputs: per-measurement inputs (``q``, ``z``, ``mask``, ``R``, ``gate``, or a
             MARG filter's ``acc``, ``mag``); every other input is shared by all kernels.
         defaults: default values of scalar inputs (e.g. ``{"kappa": 0.0}``).
+        covariance: what the carried ``P`` holds: "full" (the covariance) or "cholesky" (its lower
+            Cholesky factor L, P = L L^T: the square-root families; the runtime converts).
     """
 
     name: str
@@ -304,6 +306,7 @@ class FilterSpec:
     measurement_inputs: tuple[str, ...] = ("q", "z", "mask", "R", "gate")
     defaults: dict[str, float] = field(default_factory=dict)
     run: dict[str, str] = field(default_factory=dict)
+    covariance: str = "full"
 
     @property
     def measurements(self) -> tuple[str, ...]:
@@ -316,13 +319,15 @@ class FilterSpec:
         return {"name": self.name, "algorithm": self.algorithm, "predict": self.predict,
                 "update": dict(self.update), "step": dict(self.step), "state": list(self.state),
                 "diagnostics": list(self.diagnostics), "measurement_inputs": list(self.measurement_inputs),
-                "defaults": dict(self.defaults), "run": dict(self.run)}
+                "defaults": dict(self.defaults), "run": dict(self.run),
+                "covariance": self.covariance}
 
     @classmethod
     def from_dict(cls, entry: dict) -> "FilterSpec":
         return cls(entry["name"], entry["algorithm"], entry["predict"], dict(entry["update"]),
                    dict(entry["step"]), tuple(entry["state"]), tuple(entry["diagnostics"]),
-                   tuple(entry["measurement_inputs"]), dict(entry["defaults"]), dict(entry.get("run", {})))
+                   tuple(entry["measurement_inputs"]), dict(entry["defaults"]), dict(entry.get("run", {})),
+                   entry.get("covariance", "full"))
 
 
 @dataclass

@@ -142,6 +142,8 @@ class Model:
     #: The model file's module-level UPPER_CASE numbers, as executed for this build: [(name, value,
     #: source comment)] (filled by :func:`symkf.models.get_model`; the header's named constants).
     constants: list[tuple[str, float | list[float], str]] = field(default_factory=list)
+    #: Parameters the filters estimate as states (models/estimation.py ``estimate``): name -> record.
+    estimated: dict = field(default_factory=dict)
     _symbols: dict[str, list[ca.SX]] = field(default_factory=lambda: {k: [] for k in "xupw"})
     _pending_q: tuple | None = None
     _pending_v: tuple | None = None
@@ -382,6 +384,7 @@ class Model:
             **({"constants": [{"name": n, "value": v, "comment": c} for n, v, c in self.constants]}
                if self.constants else {}),
             **({"source": self.source} if self.source else {}),
+            **({"estimated_parameters": list(self.estimated.values())} if self.estimated else {}),
         }
 
     @property

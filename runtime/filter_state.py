@@ -45,16 +45,25 @@ class FilterState:
 
     @property
     def P(self) -> np.ndarray:
-        """The covariance (read-only view, or physical copy for a scaled build); set it with a
-        symmetric PSD matrix."""
-        if self._scaling is None:
+        """The covariance (read-only view, or physical copy for a scaled build or a square-root
+        filter); set it with a symmetric PSD matrix."""
+        if self._scaling is None and self._form is None:
             return self._views["P"]
-        return read_only(self._scaling.P_from_kernel(self._buffers["P"]))
+        P = self._buffers["P"] if self._form is None else self._form.from_kernel(self._buffers["P"])
+        return read_only(P if self._scaling is None else self._scaling.P_from_kernel(P))
 
     @P.setter
     def P(self, value) -> None:
         P = covariance("P", value, self._buffers["P"].shape[0])
-        self._write_state("P", P if self._scaling is None else self._scaling.P_to_kernel(P))
+        P = P if self._scaling is None else self._scaling.P_to_kernel(P)
+        self._write_state("P", P if self._form is None else self._form.to_kernel(P))
+
+    @property
+    def factor(self) -> np.ndarray:
+        """The lower factor L, P = L L^T, a square-root filter carries (of P~ if scaled)."""
+        if self._form is None:
+            raise ValueError(f"factor: filter '{self.family}' carries P itself, not a factor")
+        return self._views["P"]
 
     @property
     def Q(self) -> np.ndarray:

@@ -26,6 +26,7 @@ from symkf.codegen.spec import FilterSpec
 from . import calls, contract, runs
 from .buffers import fits, kernel_roles, make_buffers
 from .contract import DEFAULT_GATE_PROBABILITY, read_only
+from .covariance_form import CholeskyForm
 from .fastpath import FastPath
 from .filter_state import FilterState
 from .runs import RunResult
@@ -86,6 +87,7 @@ class Filter(FilterState):
         self.kernels = {name: self._backend.kernels[name] for name in self.spec.kernel_names()}
         self._dtype = getattr(self._backend, "dtype", np.dtype(np.float64))
         self._scaling = StateScaling.of(self.model)
+        self._form = CholeskyForm.of(self.spec)     # None: the kernels carry P itself, else its factor
         self._buffers, self.measurements = make_buffers(self.spec, self.kernels, self._dtype)
         self._fast = FastPath(self)         # its data made with the buffers, its calls bound by _bind
         self.n = self._buffers["x"].size
@@ -100,7 +102,7 @@ class Filter(FilterState):
 
     # ------------------------------------------------------------------ copies
     #: What a copy shares with its original: the compiled model and what describes it (read only).
-    _SHARED = frozenset({"spec", "family", "model", "_backend", "kernels", "_dtype", "_scaling"})
+    _SHARED = frozenset({"spec", "family", "model", "_backend", "kernels", "_dtype", "_scaling", "_form"})
     #: What a copy binds afresh: calls into the C library hold pointers to the original's buffers.
     _BOUND = frozenset({"step", "_calls", "_fast", "_views"})
 

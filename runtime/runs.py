@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from symkf.codegen.spec import STATUS_CODES, STATUS_GATED
-from . import calls, contract
+from . import calls, contract, precision
 from .backends import SymkfError
 from .buffers import buffer, fits
 
@@ -208,6 +208,9 @@ def _loop(filt, kernel: str, name: str, per_step: dict, n_steps: int):
 def _result(filt, histories: dict, status: np.ndarray) -> RunResult:
     x = histories["x"]
     P = np.transpose(histories["P"], (0, 2, 1)) if "P" in histories else None
+    precision.warn_unresolved(filt, x, P)                 # a float build: says which state float cannot hold
+    if P is not None and filt._form is not None:          # a square-root filter's factors
+        P = filt._form.from_kernel(P)
     if filt._scaling is not None:
         x, P = filt._scaling.x_from_kernel(x), None if P is None else filt._scaling.P_from_kernel(P)
     return RunResult(np.asarray(x, dtype=float), None if P is None else np.asarray(P, dtype=float), status)

@@ -45,6 +45,7 @@ from ..model_functions import ModelFunctions, Symbols
 from ..spec import STATUS_DOMAIN, STATUS_NOT_PD, Arg, Family
 from .framework import (all_finite, compose_step, filter_spec, innovation, make_kernel, masked_noise, register_family,
                         update_outputs)
+from .iterated import IteratedOptions, iterated_update_expr, iterations
 
 
 # ---------------------------------------------------------------------- process noise
@@ -126,9 +127,12 @@ def ekf_kernels(model: Model, symbols: Symbols, fns: ModelFunctions) -> Family:
                        [("x", x_pred), ("P", P_pred), ("status", status)])]
     for name, meas in model.measurements.items():
         msym, marg = symbols.measurement(name)
-        upd = ekf_update_expr(symbols, fns, name, msym, meas.wrap, s["x"], s["P"], s["t"])
+        iterated = iterations(fns.config) > 1               # Gauss-Newton updates (iterated.py)
+        upd = (iterated_update_expr if iterated else ekf_update_expr)(symbols, fns, name, msym, meas.wrap, s["x"],
+                                                                       s["P"], s["t"])
+        kind = f"iterated, {iterations(fns.config)} linearisations; " if iterated else ""
         kernels.append(make_kernel(
-            f"ekf_update_{name}", f"EKF update with measurement '{name}' at time t (Joseph form, masked, gated).",
+            f"ekf_update_{name}", f"EKF update with measurement '{name}' at time t ({kind}Joseph form, masked, gated).",
             symbols, msym, marg, UPDATE_INPUTS,
             update_outputs(upd, s["x"], s["P"], msym["gate"], msym["mask"], update_inputs_finite(symbols))))
         kernels.append(compose_step(f"ekf_step_{name}", kernels[0], kernels[-1]))
@@ -276,5 +280,5 @@ def ukf_kernels(model: Model, symbols: Symbols, fns: ModelFunctions) -> Family:
     return Family(kernels, [filter_spec("ukf", "ukf", kernels, model.measurements, defaults={"kappa": 0.0})])
 
 
-register_family("ekf", ekf_kernels)
+register_family("ekf", ekf_kernels, options=(IteratedOptions,))
 register_family("ukf", ukf_kernels, long_compile=True)      # f_d at the sigma points

@@ -15,6 +15,9 @@ Shuster 1982, as in paper 000); the omitted term is O(|δθ̂| P). With ``manifo
 the same update is m scalar updates in turn (:func:`sequential_update`; a diagonal R). The step
 kernel is one expression (:func:`mekf_step_kernel`): inputs checked once, outputs selected once.
 
+**Iterated update.** ``mekf_iterations`` > 1 (:class:`~symkf.codegen.families.iterated.MekfIteratedOptions`):
+Gauss-Newton iterations of the batch update, relinearised at x̂ ⊞ δᵢ (:func:`iterated_correction`).
+
 **Run variants.** ``manifold_run_variants`` (:class:`MekfOptions`) lists mask patterns that get
 MEKF step and run kernels of their own, the masked components and the gate folded away
 (:func:`mekf_run_kernels`; the same results, a larger bundle).
@@ -35,6 +38,7 @@ from ..model_functions import ModelFunctions, Symbols
 from ..spec import CodegenConfig, ConfigError, Family, Kernel, option
 from .chart import ManifoldOptions
 from .framework import CANONICAL_ORDER, filter_spec, make_kernel, masked_noise, register_family
+from .iterated import MekfIteratedOptions, iterations, prior_sigmas
 from .kalman import UPDATE_INPUTS, _predict_doc
 from .manifold import (ManifoldFunctions, ManifoldSymbols, chart_innovation, error_process_noise, measurement_input,
                        predict_kernel, predict_status, require_quaternion, update_outputs)
@@ -83,6 +87,9 @@ def mekf_update_expr(mf: ManifoldFunctions, ms: ManifoldSymbols, name: str, msym
     y = chart_innovation(mf, name, m, z_pred, wrap)
     HPH = linalg.sandwich(H, P)                      # sparse H: structural zeros cost nothing
     if _sequential(mf, name):
+        if iterations(mf.fns.config, MekfIteratedOptions) > 1:
+            raise ConfigError("mekf_iterations > 1 iterates the batch update; it cannot be combined with "
+                              "manifold_update='sequential'")
         # R must be diagonal (else SYMKF_ERR_ARGS, outputs not written): its masked diagonal only
         r = [msym["R"][i, i] * m.mask[i] * m.mask[i] + (1 - m.mask[i]) for i in range(H.shape[0])]
         S = linalg.symmetric(len(r), lambda i, j: HPH[i, j] + (r[i] if i == j else 0))
@@ -92,9 +99,40 @@ def mekf_update_expr(mf: ManifoldFunctions, ms: ManifoldSymbols, name: str, msym
         R = masked_noise(mf.measurement_noise(name, msym["R"], t, x, s["u"], s["p"], msym["q"]), m.mask)
         S = linalg.symmetric(R.shape[0], lambda i, j: HPH[i, j] + linalg.symmetric_part(R, i, j))
         correction, P_new, nis, ok = batch_update(H, P, y, S)
+        if iterations(mf.fns.config, MekfIteratedOptions) > 1:
+            correction, P_new, ok = iterated_correction(mf, name, msym, m, wrap, (t, x, P, s["u"], s["p"]),
+                                                        correction, P_new, ok, folded)
     ok = ok if state is not None else ok * linalg.psd_flag(P)
     x_new = mf.retract(x, correction)               # multiplicative reset
     return (x_new, P_new, y, S, ok, nis, m.finite, mf.chart.in_domain(correction)), m
+
+
+def iterated_correction(mf: ManifoldFunctions, name: str, msym: dict, m, wrap, state, delta, P_new, ok, folded):
+    """Gauss-Newton iterations of the batch update (option ``mekf_iterations``, iterated.py): from
+    delta_1 = K y, relinearise at x_i = x (+) delta_i: y_i = z (-) h(x_i), H_i = dh(x_i (+) e)/de,
+    delta_{i+1} = K_i (y_i + H_i delta_i), P+ = P - K_i S_i K_i^T. H_i is taken in x_i's own chart,
+    which differs from the prior's by O(|delta_i|), the order the first-order reset already drops.
+    Stops, in effect, once delta moves by no more than the tolerance (in prior sigmas)."""
+    options = MekfIteratedOptions.of(mf.fns.config)
+    t, x, P, u, p = state
+    sigma = prior_sigmas(P)
+    active = ca.SX(1)
+    previous = ca.SX.zeros(delta.shape)
+    for _ in range(options.iterations - 1):
+        active = active * options.still_moving(delta, previous, sigma)
+        x_i = mf.retract(x, delta)
+        q = msym["q"]
+        H = masked_rows(m.mask, mf.jac_h[name](t, x_i, u, p, q), folded)
+        y = chart_innovation(mf, name, m, mf.h_inline[name](t, x_i, u, p, q), wrap)
+        R = masked_noise(mf.measurement_noise(name, msym["R"], t, x_i, u, p, q), m.mask)
+        HPH = linalg.sandwich(H, P)
+        S = linalg.symmetric(R.shape[0], lambda i, j: HPH[i, j] + linalg.symmetric_part(R, i, j))
+        step, P_step, _, ok_step = batch_update(H, P, y + H @ delta, S)
+        previous = delta
+        delta = linalg.select(active, step, delta)
+        P_new = linalg.select(active, P_step, P_new)
+        ok = ok * linalg.select(active, ok_step, 1)
+    return delta, P_new, ok
 
 
 def masked_rows(mask, J, guarded=()) -> ca.SX:
@@ -309,4 +347,4 @@ def _step_words(mf: ManifoldFunctions) -> str:
     return "the model's exact step" if mf.options.step == "exact" else "RK4"
 
 
-register_family("mekf", mekf_kernels, quaternions=True, options=(ManifoldOptions, MekfOptions))
+register_family("mekf", mekf_kernels, quaternions=True, options=(ManifoldOptions, MekfOptions, MekfIteratedOptions))

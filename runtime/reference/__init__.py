@@ -5,6 +5,7 @@ column). One module per family, each with the compiled filter's shape (``x``, ``
 - :mod:`.kalman`: :class:`ReferenceFilter`, the EKF and UKF of ``codegen/families/kalman.py``;
 - :mod:`.cd_ekf`: :class:`NumpyCDEKF`, the continuous-discrete EKF;
 - :mod:`.manifold`: :class:`ManifoldReference`, the multiplicative EKF and the manifold UKF;
+- :mod:`.square_root`: :class:`SquareRootReference`, the square-root UKF and EKF (factor carried);
 - :mod:`.gradient_descent`: :class:`ReferenceGradientDescent`, the gradient-descent orientation filter.
 
 :func:`for_family` finds the reference of a family by its name. The model is evaluated through
@@ -18,10 +19,12 @@ from .common import wrap_angle
 from .gradient_descent import ReferenceGradientDescent
 from .kalman import ReferenceFilter
 from .manifold import ManifoldReference
+from .square_root import SquareRootReference
 
 #: The NumPy reference of each generated family.
 REFERENCE_OF_FAMILY = {"ekf": ReferenceFilter, "ukf": ReferenceFilter, "cd_ekf": NumpyCDEKF,
-                       "mekf": ManifoldReference, "mukf": ManifoldReference, "gradient_descent": ReferenceGradientDescent}
+                       "mekf": ManifoldReference, "mukf": ManifoldReference, "gradient_descent": ReferenceGradientDescent,
+                       "srukf": SquareRootReference, "srekf": SquareRootReference}
 
 
 def for_family(family: str):
@@ -33,4 +36,4 @@ def for_family(family: str):
                        f"{', '.join(sorted(REFERENCE_OF_FAMILY))}") from None
 
 
-__all__ = ["ManifoldReference", "NumpyCDEKF", "ReferenceFilter", "ReferenceGradientDescent", "for_family", "wrap_angle"]
+__all__ = ["ManifoldReference", "NumpyCDEKF", "ReferenceFilter", "ReferenceGradientDescent", "SquareRootReference", "for_family", "wrap_angle"]

@@ -12,6 +12,7 @@ from scipy.linalg import cho_factor, cho_solve, solve_triangular
 from symkf.codegen import make_config
 from symkf.codegen.model_functions import ModelFunctions
 from symkf.models import get_model
+from symkf.models.estimation import augmented
 from .common import _init_filter_state, _sym, wrap_angle
 
 
@@ -22,7 +23,7 @@ class ReferenceFilter:
                  kappa: float = 0.0, **overrides):
         if family not in ("ekf", "ukf"):
             raise ValueError("family: expected 'ekf' or 'ukf'")
-        model = get_model(model_name)
+        model = augmented(get_model(model_name))          # estimated parameters as states, as generated
         self.functions = ModelFunctions(model, make_config(model_name, **overrides))
         self.propagation = self.functions.for_filter(family)     # the family's discretisation
         self.family, self.kappa = family, float(kappa)
@@ -62,13 +63,16 @@ class ReferenceFilter:
         R = self.masked_noise(self.R[name], mask)
         wrap = self.wrap[name]
         if self.family == "ekf":
-            z_pred = self._h(name, t, self.x, q)
-            H = mask[:, None] * np.array(self.functions.jac_h[name](t, self.x, self.u, self.p, q))
-            y = self.innovation(z, z_pred, mask, wrap)
-            S = _sym(H @ self.P @ H.T + R)
-            K = cho_solve(cho_factor(S, lower=True), H @ self.P).T
+            y, S, K, H, x_new = self._gauss_newton(z, name, t, q, mask, R, self.x)
+            x_i, count, tol = self.x, self.functions.config.get("ekf_iterations", 1), self.functions.config.get(
+                "ekf_iteration_tolerance", 0.0)
+            for _ in range(count - 1):         # Bell & Cathey 1993 (codegen/families/iterated.py)
+                if not np.any(np.abs(x_new - x_i) > tol * np.sqrt(np.diag(self.P))):
+                    break
+                x_i = x_new
+                _, _, K, H, x_new = self._gauss_newton(z, name, t, q, mask, R, x_i)
             I_KH = np.eye(len(self.x)) - K @ H
-            self.x = self.x + K @ y
+            self.x = x_new
             self.P = _sym(I_KH @ self.P @ I_KH.T + K @ R @ K.T)
         else:
             points, weights = self._sigma_points(self.x, self.P)
@@ -85,6 +89,15 @@ class ReferenceFilter:
             self.x = self.x + U.T @ solve_triangular(L, y, lower=True)
             self.P = _sym(self.P - U.T @ U)
         self.y, self.S = y, S
+
+    def _gauss_newton(self, z, name, t, q, mask, R, x_i):
+        """One linearisation at x_i: y, S, K, H and x- + K (z - h(x_i) - H (x- - x_i))."""
+        z_pred = self._h(name, t, x_i, q)
+        H = mask[:, None] * np.array(self.functions.jac_h[name](t, x_i, self.u, self.p, q))
+        y = self.innovation(z, z_pred, mask, self.wrap[name])
+        S = _sym(H @ self.P @ H.T + R)
+        K = cho_solve(cho_factor(S, lower=True), H @ self.P).T
+        return y, S, K, H, self.x + K @ (y - H @ (self.x - x_i))
 
     def step(self, t: float, dt: float, z, name: str, q, mask=None) -> None:
         self.predict(t, dt)

@@ -4,7 +4,9 @@ Every figure from the float build (``precision="float"``) beside the same figure
 double build.
 
     symkf bench float [--runs 100] [--attitude-runs 2] [--attitude-duration 600] [--geo-duration 1000]
+                      [--square-root-runs 10] [--model FILE]
                       [--json] [--out FILE] [--skip-launcher] [--skip-attitude] [--skip-marg] [--skip-geo]
+                      [--skip-square-root]
 
 - launcher (paper 004): the 20 Hz small-error case (eq 9) of the campaign (preset ``correct``,
   seed 2005): ``--runs`` Monte Carlo runs of the whole flight through the EKF and the UKF, each
@@ -22,6 +24,10 @@ double build.
   and controller in double, only the continuous-discrete EKF from the float build: RMS of the
   attitude estimation error and of the true attitude over the second half (deg). A refused
   update stops the loop (SymkfError) and is reported as such.
+- square-root forms (:mod:`symkf.scenarios.toolchain.square_root_float`): EKF, UKF, SR-EKF and
+  SR-UKF on the launcher's 20 Hz small-error case (``--square-root-runs`` runs) in double, float
+  with the declared scaling and float without it; and, with ``--model FILE``, on a user model file
+  with a truth simulation (e.g. tests/models/leo_od_model.py), double and float.
 """
 from __future__ import annotations
 
@@ -46,6 +52,10 @@ def add_arguments(parser) -> None:
     parser.add_argument("--skip-attitude", action="store_true")
     parser.add_argument("--skip-marg", action="store_true")
     parser.add_argument("--skip-geo", action="store_true")
+    parser.add_argument("--square-root-runs", type=int, default=10,
+                        help="launcher runs of the EKF/UKF/SR-EKF/SR-UKF rows (default 10)")
+    parser.add_argument("--model", default=None, help="a model file with bench_case(rng): its filters, double and float")
+    parser.add_argument("--skip-square-root", action="store_true")
     parser.add_argument("--json", action="store_true", help="print the results as JSON only")
     parser.add_argument("--out", type=Path, default=None, help="also write the JSON here")
 
@@ -154,8 +164,8 @@ def geo(duration: float) -> dict:
 
 
 def run(args) -> int:
-    if args.runs < 1 or args.attitude_runs < 1 or not args.geo_duration > 0:
-        raise SystemExit("--runs and --attitude-runs must be >= 1 and --geo-duration > 0")
+    if args.runs < 1 or args.attitude_runs < 1 or args.square_root_runs < 1 or not args.geo_duration > 0:
+        raise SystemExit("--runs, --attitude-runs and --square-root-runs must be >= 1 and --geo-duration > 0")
     result = {}
     if not args.skip_launcher:
         result["launcher_20Hz_small"] = launcher(args.runs)
@@ -166,6 +176,11 @@ def run(args) -> int:
     if not args.skip_geo:
         for label, rows in geo(args.geo_duration).items():
             result[f"geo_{label}"] = rows
+    if not args.skip_square_root:
+        from symkf.scenarios.toolchain import square_root_float
+        result["launcher_square_root"] = square_root_float.launcher(args.square_root_runs)
+        if args.model:
+            result["model_square_root"] = square_root_float.user_model(args.model)
     emit(result, args.out, args.json, _print)
     return 0
 
@@ -191,3 +206,20 @@ def _print(result: dict) -> None:
             diverged = f"  diverged runs {d['diverged_runs']}/{f['diverged_runs']}" if "diverged_runs" in d else ""
             print(f"{section:20s} {family:9s} {metric + ' (' + unit + ')':34s} {d[metric]:9.4g} {f[metric]:9.4g} "
                   f"{f[metric] / d[metric]:6.2f} {refused:>11s}{diverged}")
+    _print_square_root(result)
+
+
+#: (section, metric, unit) of the square-root rows; every build beside double.
+_SQUARE_ROOT_METRICS = {"launcher_square_root": ("r_rms_m", "m"), "model_square_root": ("position_rms_m", "m")}
+
+
+def _print_square_root(result: dict) -> None:
+    for section, (metric, unit) in _SQUARE_ROOT_METRICS.items():
+        for family, rows in result.get(section, {}).items():
+            d = rows["double"]
+            for build, row in rows.items():
+                if build == "double":
+                    continue
+                value = f"{row[metric]:9.4g} {row[metric] / d[metric]:6.2f}" if metric in row else "  refused       "
+                print(f"{section:20s} {family:9s} {metric + ' (' + unit + ') ' + build:34s} {d[metric]:9.4g} {value} "
+                      f"{str(d['refused_steps']) + '/' + str(row['refused_steps']):>11s}")

@@ -1,5 +1,6 @@
 """`symkf bench float`: the float and double builds on the same draws, refused steps counted."""
 import json
+from pathlib import Path
 
 import pytest
 
@@ -8,7 +9,8 @@ from symkf.scenarios.cli import main
 
 def test_bench_float_launcher_one_run(tmp_path, capsys):
     out = tmp_path / "new" / "float.json"
-    assert main(["bench", "float", "--runs", "1", "--skip-attitude", "--skip-marg", "--skip-geo", "--out", str(out)]) == 0
+    assert main(["bench", "float", "--runs", "1", "--skip-attitude", "--skip-marg", "--skip-geo", "--skip-square-root",
+                 "--out", str(out)]) == 0
     printed = capsys.readouterr().out
     assert "launcher_20Hz_small  ekf" in printed and "diverged runs 0/0" in printed
     result = json.loads(out.read_text())["launcher_20Hz_small"]
@@ -34,3 +36,29 @@ def test_bench_float_geo_closed_loops():
 def test_bench_float_refuses_bad_sizes():
     with pytest.raises(SystemExit, match="--runs"):
         main(["bench", "float", "--runs", "0"])
+
+
+LEO = str(Path(__file__).resolve().parent.parent / "models" / "leo_od_model.py")
+
+
+@pytest.mark.slow
+def test_bench_float_square_root_rows(tmp_path, capsys):
+    """The square-root rows: every filter on the launcher (double, float scaled, float unscaled) and
+    on the LEO model file, with the refused-step counts; measured, float without the launcher's
+    declared offsets is far off for every filter (the state, not the covariance, is unresolved) and
+    says so (FloatResolutionWarning)."""
+    from symkf.runtime.precision import FloatResolutionWarning
+    out = tmp_path / "float.json"
+    with pytest.warns(FloatResolutionWarning, match="state 'r'"):
+        assert main(["bench", "float", "--skip-launcher", "--skip-attitude", "--skip-marg", "--skip-geo",
+                     "--square-root-runs", "1", "--model", LEO, "--out", str(out)]) == 0
+    assert "launcher_square_root srukf" in capsys.readouterr().out
+    result = json.loads(out.read_text())
+    for family in ("ekf", "ukf", "srekf", "srukf"):
+        rows = result["launcher_square_root"][family]
+        assert all(row["refused_steps"] == 0 for row in rows.values()), rows
+        assert rows["float"]["r_rms_m"] < 2 * rows["double"]["r_rms_m"] < 2.0, rows
+        assert rows["float_unscaled"]["r_rms_m"] > 20 * rows["double"]["r_rms_m"], rows
+        leo = result["model_square_root"][family]
+        assert leo["double"]["refused_steps"] == leo["float"]["refused_steps"] == 0, leo
+        assert leo["float"]["position_rms_m"] < 2 * leo["double"]["position_rms_m"], leo

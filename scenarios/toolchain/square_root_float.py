@@ -1,0 +1,104 @@
+"""Float beside double for the EKF, the UKF and their square-root forms (srekf, srukf), on the
+launcher with and without its declared scaling and on a user model file with a truth simulation.
+
+Rows of ``symkf bench float`` (:mod:`symkf.scenarios.toolchain.float_bench`):
+
+- launcher (paper 004), the 20 Hz small-error case of the campaign (preset ``correct``, its
+  draws): ``runs`` Monte Carlo runs of the whole flight through each filter of each build
+  (double; float with the model's declared scales and offsets; float without them,
+  ``scaling=False``, as a new user's model would be); whole-flight RMS of r, refused steps and the
+  wall seconds of the compiled runs (``filter_seconds``: the square-root forms' cost beside the plain).
+- a user model file (``--model FILE``): the file's ``build()`` gives the model (its
+  ``filters`` name the families compared) and its ``bench_case(rng)`` the record: a dict with
+  ``x0, P0, Q, times, z, mask, truth, measurement`` (truth: (N, n), row k the state at times[k]),
+  e.g. tests/models/leo_od_model.py. Position error: the first three states, RMS over the second
+  half and at the end.
+
+Every filter is built from the same model file by the same generator; the float build differs
+only in ``casadi_real``. A step that a filter refuses (status other than 0) keeps its state and
+is counted. The launcher's square-root filters come from the model with the two families added
+(:func:`launcher_with_square_root`, its own build folder).
+"""
+from __future__ import annotations
+
+import copy
+import runpy
+import time
+
+import numpy as np
+
+from symkf.models import get_model
+from symkf.models import launcher as L
+from symkf.runtime import SymkfError, load
+from symkf.scenarios.metrics import state_error
+
+#: The filters compared on the launcher: the model's two and the two square-root forms.
+LAUNCHER_FILTERS = ("ekf", "ukf", "srekf", "srukf")
+#: The builds compared: (label, codegen overrides).
+LAUNCHER_BUILDS = (("double", {}), ("float", {"precision": "float"}),
+                   ("float_unscaled", {"precision": "float", "scaling": False}))
+
+
+def launcher_with_square_root():
+    """The launcher model with the square-root families beside its EKF and UKF, named
+    ``launcher_sr`` so that its build has its own folder (the equations are the launcher's)."""
+    model = copy.copy(get_model("launcher"))
+    model.name, model.filters = "launcher_sr", LAUNCHER_FILTERS
+    return model
+
+
+def launcher(runs: int, seed: int = 2005) -> dict:
+    """{filter: {build: {r_rms_m, V_rms_m_s, refused_steps, runs}}} on the 20 Hz small-error case."""
+    from symkf.scenarios.launcher import campaign as C
+    case = C.Case(20, "small")
+    tuning = C.TUNING
+    measurement = L.RADAR_MEASUREMENTS[tuning["stations"]]
+    times, truth, track = C.case_flight(case.rate_hz, L.T_INSERTION, measurement)
+    x0, P0 = C.initial_estimate(case, truth[0], tuning["P0_floor"])
+    draws = [C.measurements(seed, case, run, track) for run in range(runs)]
+    out: dict = {}
+    for label, overrides in LAUNCHER_BUILDS:
+        compiled = load(launcher_with_square_root(), **overrides)
+        for family in LAUNCHER_FILTERS:
+            base = family[2:] if family.startswith("sr") else family
+            f = compiled.filter(family, x0, P0, tuning["Q"] * tuning[f"{base}_q_scale"],
+                                **({"kappa": tuning["kappa"]} if base == "ukf" else {}))
+            squared, refused, seconds = [], 0, 0.0
+            for z in draws:
+                f.x, f.P = x0, P0
+                f.t = 0.0
+                start = time.perf_counter()
+                result = f.run(times, z, measurement, q=track.station_params())
+                seconds += time.perf_counter() - start
+                refused += int(np.count_nonzero(result.status))
+                squared.append(state_error(truth, result.x, C.ANGLE_STATES) ** 2)
+            rms = np.sqrt(np.mean(squared, axis=0))
+            whole = C.whole_flight_mean(np.where(C.ANGLE_STATES, np.degrees(rms), rms))
+            out.setdefault(family, {})[label] = {"r_rms_m": float(whole[3]), "V_rms_m_s": float(whole[0]),
+                                                 "refused_steps": refused, "runs": runs,
+                                                 "filter_seconds": seconds}
+    return out
+
+
+def user_model(path: str, seed: int = 11) -> dict:
+    """{filter: {build: {position_rms_m, final_position_error_m, refused_steps, steps}}} for the
+    model file ``path`` (module docstring), double and float."""
+    case = runpy.run_path(path)["bench_case"](np.random.default_rng(seed))
+    model = get_model(path)
+    out: dict = {}
+    for label, overrides in (("double", {}), ("float", {"precision": "float"})):
+        compiled = load(path, **overrides)
+        for family in model.filters:
+            f = compiled.filter(family, case["x0"], case["P0"], case["Q"])
+            f.t = float(case["times"][0])
+            try:
+                result = f.run(case["times"], case["z"], case["measurement"], mask=case["mask"])
+            except SymkfError as exc:             # a run that cannot start (e.g. the first step refused)
+                out.setdefault(family, {})[label] = {"refused": str(exc), "refused_steps": len(case["times"])}
+                continue
+            position = np.linalg.norm(result.x[:, :3] - case["truth"][:, :3], axis=1)
+            half = position[position.size // 2:]
+            out.setdefault(family, {})[label] = {
+                "position_rms_m": float(np.sqrt(np.mean(half ** 2))), "final_position_error_m": float(position[-1]),
+                "refused_steps": int(np.count_nonzero(result.status)), "steps": int(position.size)}
+    return out
