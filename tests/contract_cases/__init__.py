@@ -17,7 +17,7 @@ import numpy as np
 from symkf.runtime import Filter
 
 #: One module per model, in the order the cases are listed.
-MODULES = ("launcher", "geo_satellite", "attitude", "marg", "spinner")
+MODULES = ("launcher", "geo_satellite", "attitude", "marg", "spinner", "leo")
 
 
 @dataclass
