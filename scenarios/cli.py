@@ -19,9 +19,10 @@ import json
 import pkgutil
 import sys
 import textwrap
+import warnings
 from pathlib import Path
 
-from symkf.codegen import BuildError, build_model, export_bundle
+from symkf.codegen import BuildError, BundleRepairWarning, build_model, export_bundle
 from symkf.codegen.spec import ConfigError
 from symkf.models import ModelError
 
@@ -78,7 +79,11 @@ def _option(text: str) -> tuple[str, object]:
 
 
 def _cmd_build(args) -> int:
-    result = build_model(args.model, force=args.force, **dict(args.set or []))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", BundleRepairWarning)         # said below, on one line
+        result = build_model(args.model, force=args.force, **dict(args.set or []))
+    if result.repaired:
+        print(f"{result.model}: {result.repaired} in {result.directory}; regenerated the bundle")
     if result.up_to_date:
         print(f"{result.model}: up to date ({result.directory}, checked in {result.seconds * 1e3:.0f} ms)")
     else:
@@ -135,6 +140,10 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.handler(args) or 0)
     except (BuildError, ConfigError, ModelError) as exc:
         print(f"symkf {args.command}: {exc}", file=sys.stderr)
+        return 1
+    except OSError as exc:                    # a fault outside the build folder (e.g. reading the model file)
+        where = f" ({exc.filename})" if exc.filename else ""
+        print(f"symkf {args.command}: {exc.strerror or exc}{where}", file=sys.stderr)
         return 1
 
 
