@@ -53,6 +53,19 @@ def compile_flags(config: CodegenConfig, unit: str = "") -> list[str]:
             + c_makefile.precision_flags(config))
 
 
+def compiler_failure(what: str, cmd: list[str], stderr: str, directory: Path) -> BuildError:
+    """The error of a failed compiler command: one line for a fault of the disk (full, read-only),
+    which is not the code's; else the command and the compiler's own message."""
+    space = "free some space, or set SYMKF_BUILD_DIR to a folder on another disk"
+    for sign, fault, fix in (("No space left on device", "the disk is full", space),
+                             ("Disk quota exceeded", "the disk quota is used up", space),
+                             ("Read-only file system", "the folder is read-only",
+                              "set SYMKF_BUILD_DIR to a folder you can write")):
+        if sign in stderr:
+            return BuildError(f"{what} failed: {fault} ({directory.parent}); nothing was installed: {fix}")
+    return BuildError(f"{what} failed ({' '.join(cmd)}):\n{stderr[-4000:]}")
+
+
 @dataclass(frozen=True)
 class UnitOptions:
     """Per-unit compiler flags (read by :func:`unit_optimization`)."""
@@ -105,7 +118,7 @@ def compile_bundle(directory: Path, name: str, cc: str, config: CodegenConfig,
     cmd = cc.split() + ["-shared", "-o", f"lib{name}.so"] + [o.name for o in objects] + ["-lm"]
     returncode, stderr = run_compiler(cmd, directory)
     if returncode != 0:
-        raise BuildError(f"linking lib{name}.so failed ({' '.join(cmd)}):\n{stderr[-4000:]}")
+        raise compiler_failure(f"linking lib{name}.so", cmd, stderr, directory)
     for obj in objects:
         for leftover in (obj, obj.with_suffix(".ci"), obj.with_suffix(".su")):
             leftover.unlink(missing_ok=True)
@@ -197,7 +210,7 @@ class UnitCompiler:
                     for file in waiting]
         for cmd, (returncode, stderr) in zip(commands, run_compilers(commands, self.directory)):
             if returncode != 0:
-                raise BuildError(f"preprocessing {cmd[-1]} failed ({' '.join(cmd)}):\n{stderr[-4000:]}")
+                raise compiler_failure(f"preprocessing {cmd[-1]}", cmd, stderr, self.directory)
         for file in waiting:
             self._start(file, (self.directory / (file[:-2] + ".i")).read_text())
             (self.directory / (file[:-2] + ".i")).unlink()
@@ -207,7 +220,7 @@ class UnitCompiler:
             returncode, stderr = results[self.units[file].job]
             if returncode != 0:
                 cmd = self.cc.split() + self.flags(file) + ["-c", file]
-                raise BuildError(f"compiling {file} failed ({' '.join(cmd)}):\n{stderr[-4000:]}")
+                raise compiler_failure(f"compiling {file}", cmd, stderr, self.directory)
         for file in compiled:
             _store(self.units[file].cached, self.directory / (file[:-2] + ".o"), self.suffixes)
         _prune(self.cache, keep=400)
