@@ -24,7 +24,7 @@ from pathlib import Path
 from symkf.models import Model
 from .errors import BuildError
 from .generation import default_config
-from .safe_files import ForeignFileError, _check
+from .safe_files import ForeignFileError, check_owned
 from .spec import CodegenConfig
 
 CODEGEN_DIR = Path(__file__).resolve().parent
@@ -127,7 +127,7 @@ def point_to(root: Path, folder: str, target: Path) -> None:
     except FileNotFoundError:
         info = None
     if info is not None and not os.path.islink(link):
-        _check(link, info, "folder")                # never move away what another user made
+        check_owned(link, info, "folder")                # never move away what another user made
         old = root / f".{folder}.old-{os.getpid()}-{secrets.token_hex(4)}"
         os.rename(link, old)
         shutil.rmtree(old, ignore_errors=True)

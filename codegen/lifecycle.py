@@ -38,7 +38,7 @@ from .export import export_bundle
 from .generation import config_for, generate_validated, write_bundle
 from .hashing import content_hash, generated_hash
 from .manifest import folder_state
-from .safe_files import ForeignFileError, _check
+from .safe_files import ForeignFileError, check_owned
 from .spec import Bundle
 
 __all__ = ["BuildResult", "build_model", "build_validated", "export_bundle"]
@@ -80,7 +80,7 @@ def _lock(root: Path, name: str):
             raise BuildError(f"{path} is a symlink; remove it") from None
         raise
     try:
-        _check(path, os.fstat(fd), "file")
+        check_owned(path, os.fstat(fd), "file")
         fcntl.flock(fd, fcntl.LOCK_EX)
         yield
     finally:
@@ -124,7 +124,7 @@ def fault_message(exc: OSError, model: str, root: Path) -> str:
     """One line for a file-system fault while building ``model`` in ``root``: what and what to do."""
     where = f" ({exc.filename})" if exc.filename else ""
     if exc.errno in (errno.ENOSPC, errno.EDQUOT):
-        fix = f"free some space there, or set SYMKF_BUILD_DIR to a folder on another disk"
+        fix = "free some space there, or set SYMKF_BUILD_DIR to a folder on another disk"
         return f"building '{model}': the disk of {root} is full{where}; nothing was installed: {fix}"
     if exc.errno in (errno.EROFS, errno.EACCES, errno.EPERM):
         what = "read-only" if exc.errno == errno.EROFS else "not writable by you"

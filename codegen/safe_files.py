@@ -31,7 +31,7 @@ class ForeignFileError(BuildError):
     """A folder or file in the build root that this user did not make (or may be replaced by others)."""
 
 
-def _check(path: Path, info: os.stat_result, kind: str) -> None:
+def check_owned(path: Path, info: os.stat_result, kind: str) -> None:
     """Refuse ``path`` unless it is a ``kind`` ("folder" or "file") this user owns that no other user can write."""
     uid = os.geteuid()
     if stat.S_ISLNK(info.st_mode):
@@ -49,7 +49,7 @@ def _check(path: Path, info: os.stat_result, kind: str) -> None:
 
 
 def check_folder(path: Path, create: bool = False) -> Path:
-    """``path`` if it is a folder of this user's (see :func:`_check`); ``create``: made (mode 755) if absent."""
+    """``path`` if it is a folder of this user's (see :func:`check_owned`); ``create``: made (mode 755) if absent."""
     try:
         info = os.lstat(path)
     except FileNotFoundError:
@@ -60,7 +60,7 @@ def check_folder(path: Path, create: bool = False) -> Path:
         except FileExistsError:
             pass                                       # made meanwhile by another build: checked below
         info = os.lstat(path)
-    _check(path, info, "folder")
+    check_owned(path, info, "folder")
     return path
 
 
@@ -70,10 +70,10 @@ def open_checked(path: Path) -> int:
         fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC | getattr(os, "O_NONBLOCK", 0))
     except OSError as exc:
         if exc.errno == errno.ELOOP:
-            _check(path, os.lstat(path), "file")
+            check_owned(path, os.lstat(path), "file")
         raise
     try:
-        _check(path, os.fstat(fd), "file")
+        check_owned(path, os.fstat(fd), "file")
     except BaseException:
         os.close(fd)
         raise
