@@ -94,3 +94,24 @@ def test_ten_thousand_loads_of_two_edits(tmp_path, write_model, monkeypatch):
     print(json.dumps([{k: v for k, v in r.items() if k != "stderr"} for r in results]))
     for counts in results:
         assert counts["wrong"] == 0 and counts["errors"] == 0, counts
+
+
+def test_the_loader_goes_by_the_key_of_the_text_it_read(tmp_path, write_model, monkeypatch):
+    """Deterministically, what the race could do: another edit of the same model is built last (the
+    plain folder name points to it), yet a load of this edit gets this edit's library; a library
+    whose embedded hash is not the caller's key is refused."""
+    from symkf.codegen import build_model
+    from symkf.runtime import StaleLibraryError
+    from symkf.runtime.backends import CompiledBackend
+    expected = _expected(tmp_path, write_model, monkeypatch)
+    root = tmp_path / "shared"
+    monkeypatch.setenv("SYMKF_BUILD_DIR", str(root))
+    mine, other = (write_model(tmp_path / name / "tracker.py", drag=drag) for name, drag in zip("ab", DRAGS))
+    built_mine, built_other = build_model(str(mine)), build_model(str(other))
+    assert (root / "tiny").resolve() == built_other.directory != built_mine.directory
+    ekf = load(str(mine)).ekf([0.0, 1.0], np.eye(2), np.diag([0.0, 0.01]))
+    for k in range(3):
+        ekf.step(0.5 * k, 0.5, [0.4 * (k + 1)], "gps")
+    assert list(ekf.x) == expected[repr(DRAGS[0])]
+    with pytest.raises(StaleLibraryError, match="content hash"):
+        CompiledBackend(built_other.library, built_other.record, key=built_mine.content_hash)
