@@ -127,7 +127,8 @@ def main(argv: list[str] | None = None) -> int:
     build = sub.add_parser("build", help="generate and compile a model (paper model name, .py file or module)")
     build.add_argument("model", help="launcher | attitude | geo_satellite | marg | path/to/model.py | package.module")
     build.add_argument("--force", action="store_true", help="rebuild even if up to date")
-    build.add_argument("--out", type=Path, help="also copy the flight bundle (.c .h Makefile manifest .so) here")
+    build.add_argument("--out", type=Path, help="also export the flight bundle (.c .h Makefile manifest .so) here: only files that "
+                       "match their digests, whole or not at all, never over a symlink or another user's file")
     build.add_argument("--set", type=_option, action="append", metavar="KEY=VALUE",
                        help="a codegen option, e.g. rk4_substeps=2 (each configuration has its own folder)")
     build.set_defaults(handler=_cmd_build)
