@@ -22,7 +22,8 @@ from pathlib import Path
 from .c_backend import makefile as c_makefile, stack as c_stack
 from .compiler_pool import CompilerPool, run_compiler, run_compilers
 from .errors import BuildError, CompilerNotFound
-from .manifest import sha256_file
+from .manifest import sha256_bytes, sha256_file
+from .safe_files import check_folder, read_checked, write_exclusive
 from .spec import CodegenConfig, ConfigError, declare_options, option
 
 
@@ -50,6 +51,19 @@ def compile_flags(config: CodegenConfig, unit: str = "") -> list[str]:
     """Flags of a unit (:func:`unit_optimization`), in the library and in the bundle's Makefile alike."""
     return (c_makefile.STRICT_FLAGS.split() + unit_optimization(config, unit).split() + ["-fPIC"]
             + c_makefile.precision_flags(config))
+
+
+def compiler_failure(what: str, cmd: list[str], stderr: str, directory: Path) -> BuildError:
+    """The error of a failed compiler command: one line for a fault of the disk (full, read-only),
+    which is not the code's; else the command and the compiler's own message."""
+    space = "free some space, or set SYMKF_BUILD_DIR to a folder on another disk"
+    for sign, fault, fix in (("No space left on device", "the disk is full", space),
+                             ("Disk quota exceeded", "the disk quota is used up", space),
+                             ("Read-only file system", "the folder is read-only",
+                              "set SYMKF_BUILD_DIR to a folder you can write")):
+        if sign in stderr:
+            return BuildError(f"{what} failed: {fault} ({directory.parent}); nothing was installed: {fix}")
+    return BuildError(f"{what} failed ({' '.join(cmd)}):\n{stderr[-4000:]}")
 
 
 @dataclass(frozen=True)
@@ -90,7 +104,8 @@ def compile_bundle(directory: Path, name: str, cc: str, config: CodegenConfig,
     unit whose text, compiler and flags match a cached object is not recompiled; ``units``: the
     compiler the build already started units with), fill the header's stack figures from the
     compiler's call graphs of those same compiles, link lib<name>.so, copy it to the per-build name
-    Python loads and record that copy's SHA-256. Returns the units compiled."""
+    Python loads and record the SHA-256 of that copy and of every file of the bundle. Returns the
+    units compiled."""
     manifest = json.loads((directory / "manifest.json").read_text())
     if units is None:
         with UnitCompiler(directory, cc, config, f"{name}.h") as units:
@@ -103,13 +118,15 @@ def compile_bundle(directory: Path, name: str, cc: str, config: CodegenConfig,
     cmd = cc.split() + ["-shared", "-o", f"lib{name}.so"] + [o.name for o in objects] + ["-lm"]
     returncode, stderr = run_compiler(cmd, directory)
     if returncode != 0:
-        raise BuildError(f"linking lib{name}.so failed ({' '.join(cmd)}):\n{stderr[-4000:]}")
+        raise compiler_failure(f"linking lib{name}.so", cmd, stderr, directory)
     for obj in objects:
         for leftover in (obj, obj.with_suffix(".ci"), obj.with_suffix(".su")):
             leftover.unlink(missing_ok=True)
     loaded = f"lib{name}.{manifest['content_hash'][:12]}.{secrets.token_hex(4)}.so"
     shutil.copyfile(directory / f"lib{name}.so", directory / loaded)        # a copy, never a hard link
-    manifest.update(hashed_library=loaded, library_sha256=sha256_file(directory / loaded))
+    bundle = list(manifest["sources"]) + [f"{name}.h", "Makefile", f"lib{name}.so"]
+    manifest.update(hashed_library=loaded, library_sha256=sha256_file(directory / loaded),
+                    files={file: sha256_file(directory / file) for file in bundle})   # the bundle is verified too
     (directory / "manifest.json").write_text(json.dumps(manifest, indent=1))
     return compiled
 
@@ -138,8 +155,7 @@ class UnitCompiler:
         self.directory, self.cc, self.config, self.header = directory, cc, config, header
         self.stack = measures_stack(cc)
         self.suffixes = (".o", ".ci") if self.stack else (".o",)
-        self.cache = directory.parent / ".objects"
-        self.cache.mkdir(exist_ok=True)
+        self.cache = check_folder(directory.parent / ".objects", create=True)     # this user's, or refused
         self.jobs = max(1, jobs or os.cpu_count() or 1)
         self.pool = CompilerPool(directory, max(1, self.jobs - 1), cores=self.jobs)     # this process is generating
         self.units: dict[str, _Unit] = {}
@@ -194,7 +210,7 @@ class UnitCompiler:
                     for file in waiting]
         for cmd, (returncode, stderr) in zip(commands, run_compilers(commands, self.directory)):
             if returncode != 0:
-                raise BuildError(f"preprocessing {cmd[-1]} failed ({' '.join(cmd)}):\n{stderr[-4000:]}")
+                raise compiler_failure(f"preprocessing {cmd[-1]}", cmd, stderr, self.directory)
         for file in waiting:
             self._start(file, (self.directory / (file[:-2] + ".i")).read_text())
             (self.directory / (file[:-2] + ".i")).unlink()
@@ -204,7 +220,7 @@ class UnitCompiler:
             returncode, stderr = results[self.units[file].job]
             if returncode != 0:
                 cmd = self.cc.split() + self.flags(file) + ["-c", file]
-                raise BuildError(f"compiling {file} failed ({' '.join(cmd)}):\n{stderr[-4000:]}")
+                raise compiler_failure(f"compiling {file}", cmd, stderr, self.directory)
         for file in compiled:
             _store(self.units[file].cached, self.directory / (file[:-2] + ".o"), self.suffixes)
         _prune(self.cache, keep=400)
@@ -212,29 +228,34 @@ class UnitCompiler:
 
 
 def _reuse(cached: Path, obj: Path, suffixes: tuple[str, ...]) -> bool:
-    """Copy a cached entry next to the unit if its sums match the copies; False (compile) otherwise."""
+    """Copy a cached entry next to the unit if its bytes match their sums; False (compile) otherwise.
+    Each file is read once, without following a symlink and only if this user made it
+    (:func:`~symkf.codegen.safe_files.read_checked`: anything else is refused, never linked), and
+    only the bytes that matched their sum are written to the staging folder the link reads."""
     try:
-        sums = json.loads(cached.with_suffix(".sum").read_text())
+        sums = json.loads(read_checked(cached.with_suffix(".sum")))
+        verified = {}
         for suffix in suffixes:
-            shutil.copyfile(cached.with_suffix(suffix), obj.with_suffix(suffix))
-            if sha256_file(obj.with_suffix(suffix)) != sums[suffix]:
+            data = read_checked(cached.with_suffix(suffix))
+            if sha256_bytes(data) != sums[suffix]:
                 return False
-        return True
+            verified[suffix] = data
     except (OSError, ValueError, KeyError, TypeError):
         return False
+    for suffix, data in verified.items():
+        obj.with_suffix(suffix).write_bytes(data)        # the staging folder: private to this build
+    return True
 
 
 def _store(cached: Path, obj: Path, suffixes: tuple[str, ...]) -> None:
-    """Add a compiled unit to the cache: its files, then (atomically, last) their sums."""
+    """Add a compiled unit to the cache: its files, then (last) their sums, each written to an
+    exclusively created temporary renamed into place (a planted symlink is never followed)."""
     sums = {}
     for suffix in suffixes:
-        temporary = cached.parent / f".{cached.name}{suffix}.{secrets.token_hex(4)}"
-        shutil.copyfile(obj.with_suffix(suffix), temporary)
-        sums[suffix] = sha256_file(temporary)
-        os.replace(temporary, cached.with_suffix(suffix))
-    temporary = cached.parent / f".{cached.name}.sum.{secrets.token_hex(4)}"
-    temporary.write_text(json.dumps(sums))
-    os.replace(temporary, cached.with_suffix(".sum"))
+        data = obj.with_suffix(suffix).read_bytes()
+        sums[suffix] = sha256_bytes(data)
+        write_exclusive(cached.with_suffix(suffix), data)
+    write_exclusive(cached.with_suffix(".sum"), json.dumps(sums))
 
 
 def _prune(cache: Path, keep: int) -> None:

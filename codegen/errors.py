@@ -7,3 +7,7 @@ class BuildError(RuntimeError):
 
 class CompilerNotFound(BuildError):
     """No C compiler: the runtime can still evaluate the kernels in CasADi's virtual machine."""
+
+
+class BundleRepairWarning(UserWarning):
+    """A build folder of the same sources had a file missing, damaged or edited: it is regenerated."""

@@ -38,12 +38,12 @@ FRAMEWORK_MODULES = ("symkf.codegen.build_folders", "symkf.codegen.c_backend.api
                      "symkf.codegen.c_backend.header", "symkf.codegen.c_backend.makefile", "symkf.codegen.c_backend.names",
                      "symkf.codegen.c_backend.stack", "symkf.codegen.c_backend.template_util", "symkf.codegen.c_backend.units",
                      "symkf.codegen.compilation",
-                     "symkf.codegen.compiler_pool", "symkf.codegen.discretize", "symkf.codegen.errors",
+                     "symkf.codegen.compiler_pool", "symkf.codegen.discretize", "symkf.codegen.errors", "symkf.codegen.export",
                      "symkf.codegen.generation", "symkf.codegen.hashing", "symkf.codegen.families.framework",
                      "symkf.codegen.model_functions",
                      "symkf.codegen.lifecycle", "symkf.codegen.linalg", "symkf.codegen.manifest",
-                     "symkf.codegen.scaling", "symkf.codegen.spec", "symkf.codegen.square_root",
-                     "symkf.models.base", "symkf.models.estimation")
+                     "symkf.codegen.safe_files", "symkf.codegen.scaling", "symkf.codegen.spec",
+                     "symkf.codegen.square_root", "symkf.models.base", "symkf.models.estimation")
 
 
 def _source_digest(module: types.ModuleType) -> str:

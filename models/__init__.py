@@ -22,6 +22,7 @@ import os
 import re
 import sys
 import tokenize
+import traceback
 import types
 from pathlib import Path
 
@@ -88,7 +89,10 @@ def _from_file(path: Path, package: str | None, display: str | None = None) -> M
     module = types.ModuleType(unique)
     module.__file__ = str(path.resolve())
     module.__package__ = package
-    code = compile(source, str(path), "exec", dont_inherit=True)
+    try:
+        code = compile(source, str(path), "exec", dont_inherit=True)
+    except SyntaxError as exc:
+        raise ModelError(f"model file {path}, line {exc.lineno}: {exc.msg}; fix the file") from None
     folder = str(path.resolve().parent)
     added = package is None and folder not in sys.path
     if added:                              # a model file may import its siblings, as a script can
@@ -96,6 +100,10 @@ def _from_file(path: Path, package: str | None, display: str | None = None) -> M
     sys.modules[unique] = module           # dataclasses and pickling look their module up
     try:
         exec(code, module.__dict__)
+    except (ModelError, KeyboardInterrupt):
+        raise
+    except Exception as exc:
+        raise ModelError(_raised(exc, path, "executing it")) from exc
     finally:
         sys.modules.pop(unique, None)
         if added and folder in sys.path:
@@ -108,7 +116,12 @@ def _call_build(module: types.ModuleType, display: str, source: bytes | None = N
     build = getattr(module, "build", None)
     if not callable(build):
         raise ModelError(f"{display} defines no build() returning a Model")
-    model = build()
+    try:
+        model = build()
+    except ModelError:
+        raise
+    except Exception as exc:
+        raise ModelError(_raised(exc, Path(getattr(module, "__file__", "") or display), "in build()")) from exc
     if model is None:
         raise ModelError(f"{display}: build() returned None; end it with `return model`")
     if not isinstance(model, Model):
@@ -118,6 +131,15 @@ def _call_build(module: types.ModuleType, display: str, source: bytes | None = N
     if not model.source:
         model.source = display if origin is None else origin     # a module: its name; a file: its path
     return model.validate()
+
+
+def _raised(exc: Exception, path: Path, when: str) -> str:
+    """One line for an exception a model file raised: where in the file, what, and what to do."""
+    line = next((frame.lineno for frame in reversed(traceback.extract_tb(exc.__traceback__))
+                 if Path(frame.filename) == Path(path)), None)
+    where = f", line {line}" if line else ""
+    text = " ".join(str(exc).split()) or "(no message)"
+    return f"model file {path}{where} raised {type(exc).__name__} {when}: {text}; fix the model file"
 
 
 def module_constants(module: types.ModuleType, source: bytes) -> list[tuple[str, float | list[float], str]]:

@@ -246,6 +246,8 @@ class Model:
                              f"not a {type(derivatives).__name__}")
         derivatives = _expand_quaternions(self, derivatives)
         names = self.state_names()
+        if not names:
+            checks.check_sizes(self)                    # no state: the one-line refusal of validate()
         missing = [n for n in names if n not in derivatives]
         extra = [n for n in derivatives if n not in names]
         if missing or extra:
@@ -356,8 +358,7 @@ class Model:
         check_model_name(self.name)
         if self.f is None:
             raise ModelError(f"model '{self.name}': set_dynamics() was never called")
-        if not self.states:
-            raise ModelError(f"model '{self.name}': no states declared")
+        checks.check_sizes(self)
         events = np.asarray(self.events, dtype=float)
         if not np.all(np.isfinite(events)) or np.any(np.diff(events) <= 0):
             raise ModelError(f"model '{self.name}': events must be finite and strictly increasing, got {self.events}")

@@ -69,7 +69,14 @@ def load(model, backend: str = "auto", **overrides) -> CompiledModel:
             if backend == "compiled":
                 raise
             return _vm_model(model, reason=str(exc), **overrides)
-        compiled = CompiledBackend.from_build(result)
+        for attempt in range(3):        # the build checked can be pruned or damaged before it is opened
+            try:
+                compiled = CompiledBackend.from_build(result)
+                break
+            except (FileNotFoundError, StaleLibraryError):
+                if attempt == 2:
+                    raise
+                result = build_validated(model, start=start, **overrides)
         return CompiledModel(model.name, compiled, compiled.manifest["description"],
                              [FilterSpec.from_dict(f) for f in compiled.manifest["filters"]], result)
     return _vm_model(model, reason="", **overrides)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import ctypes
 import functools
+import os
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,6 +19,7 @@ import numpy as np
 
 from symkf.codegen.lifecycle import BuildResult
 from symkf.codegen.manifest import verified_manifest
+from symkf.codegen.safe_files import mapped_is, open_checked, sha256_fd
 from symkf.codegen.c_backend.api import passing
 from symkf.codegen.spec import STATUS_CODES, STATUS_GATED, STATUS_NONFINITE, Arg, Bundle, Kernel
 
@@ -81,20 +83,41 @@ def manifest_precision(manifest: dict) -> str:
     return extra.get("precision", "double")
 
 
+def open_library(library: Path, sha256: str | None) -> ctypes.CDLL:
+    """``library`` opened with ctypes, only as the very file checked: a descriptor opened without
+    following a symlink, refused unless the file is this user's, hashed (given ``sha256``); the
+    library the dynamic loader then maps under that name must be that file (same inode)."""
+    fd = open_checked(library)
+    try:
+        if sha256 is not None and sha256_fd(fd) != sha256:
+            raise StaleLibraryError(f"{library} does not match the SHA-256 its manifest records; it was not opened. "
+                                    "Rebuild with `symkf build <model>`")
+        lib = ctypes.CDLL(str(library))
+        if not mapped_is(fd, library):
+            raise StaleLibraryError(f"{library} was replaced while it was being opened; rebuild with "
+                                    "`symkf build <model>`")
+        return lib
+    finally:
+        os.close(fd)
+
+
 class CompiledBackend:
     """The compiled library of one model, loaded with ctypes and checked against its manifest."""
 
     kind = "compiled"
 
-    def __init__(self, library: Path, manifest: dict):
+    def __init__(self, library: Path, manifest: dict, key: str | None = None):
+        """``key``: the content hash the caller computed from the model it read (default: the
+        manifest's); a library with another embedded hash is refused."""
         self.manifest = manifest
         self.model = manifest["model"]
         self.library_path = library
-        self.lib = ctypes.CDLL(str(library))
+        key = key or manifest["content_hash"]
+        self.lib = open_library(library, manifest.get("library_sha256"))
         hash_fn = getattr(self.lib, f"{self.model}_content_hash")
         hash_fn.restype = ctypes.c_char_p
         embedded = hash_fn().decode()
-        if embedded != manifest["content_hash"]:
+        if embedded != manifest["content_hash"] or embedded != key:
             raise StaleLibraryError(f"{library} was generated with content hash {embedded}, the manifest "
                                     f"says {manifest['content_hash']}: rebuild with `symkf build {self.model} --force`")
         self.kernels = {k["name"]: KernelInfo.from_manifest(k) for k in manifest["kernels"]}
@@ -118,7 +141,7 @@ class CompiledBackend:
         if not result.record:
             raise StaleLibraryError(f"{result.directory}: no readable manifest; it was not opened. "
                                     "Rebuild with `symkf build <model>`")
-        return cls(result.library, result.record)
+        return cls(result.library, result.record, result.content_hash)
 
     def bind(self, kernel: str, buffers: dict[str, np.ndarray], entry: str = "v") -> "BoundCall":
         """``<model>_<kernel>_<entry>`` (the binding entry ``_v``, or ``unchecked_v``: no test of the

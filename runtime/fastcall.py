@@ -10,7 +10,10 @@ the extension accepts only calls the contract accepts, writes the same values, a
 The extension is compiled once per machine and Python, like a model library: with the C compiler
 of :func:`symkf.codegen.compilation.compiler` and Python's headers, into ``<build root>/_fastcall/<key>/``
 (key: SHA-256 of the C source, compiler, Python ABI and flags), its SHA-256 checked before it is
-imported. Without a compiler, without Python's headers, on the CasADi-VM backend or with
+imported. Those folders, the extension and its ``sha256`` record are used only if this user made
+them (:mod:`symkf.codegen.safe_files`: checked owner and mode, opened without following a
+symlink; the record written to an exclusively created temporary and renamed); anything foreign
+is refused with a warning naming it, and every call takes the Python path. Without a compiler, without Python's headers, on the CasADi-VM backend or with
 ``SYMKF_FASTCALL=0``, every call takes the Python path (same results, slower).
 """
 from __future__ import annotations
@@ -24,6 +27,7 @@ import os
 import sys
 import sysconfig
 import tempfile
+import warnings
 from pathlib import Path
 
 import numpy
@@ -34,6 +38,8 @@ from symkf.codegen.compiler_pool import run_compiler
 from symkf.codegen.errors import BuildError
 from symkf.codegen.lifecycle import _lock
 from symkf.codegen.manifest import sha256_file
+from symkf.codegen.safe_files import (ForeignFileError, check_folder, mapped_is, open_checked, read_checked,
+                                      sha256_fd, write_exclusive)
 from symkf.codegen.spec import STATUS_GATED
 
 SOURCE = Path(__file__).resolve().parent / "_fastcall.c"
@@ -55,6 +61,10 @@ def extension():
         return None
     try:
         module = _import(_build())
+    except ForeignFileError as exc:
+        unavailable = str(exc)
+        warnings.warn(f"the fast path is off: {exc}", RuntimeWarning, stacklevel=2)
+        return None
     except (BuildError, OSError, ImportError) as exc:
         unavailable = f"{type(exc).__name__}: {exc}"
         return None
@@ -84,39 +94,66 @@ def _build() -> Path:
     if not (Path(include) / "Python.h").is_file():
         raise BuildError(f"Python's headers are not installed (no {include}/Python.h)")
     key = _key(cc, include)
-    root = private_root() / "_fastcall"
-    root.mkdir(exist_ok=True, mode=0o755)
+    root = check_folder(private_root() / "_fastcall", create=True)
     folder = root / key[:16]
     library = folder / f"{MODULE}{sysconfig.get_config_var('EXT_SUFFIX') or '.so'}"
     with _lock(root, key[:16]):
+        check_folder(folder, create=True)
         if not _verified(folder, library):
             _compile(cc, include, folder, library)
     return library
 
 
+def _recorded(folder: Path) -> str:
+    """The SHA-256 the build recorded for the extension ("" if there is none)."""
+    try:
+        return read_checked(folder / "sha256").decode().strip()
+    except FileNotFoundError:
+        return ""
+
+
 def _verified(folder: Path, library: Path) -> bool:
-    record = folder / "sha256"
-    return library.is_file() and record.is_file() and record.read_text().strip() == sha256_file(library)
+    try:
+        fd = open_checked(library)
+    except FileNotFoundError:
+        return False
+    try:
+        return (recorded := _recorded(folder)) != "" and recorded == sha256_fd(fd)
+    finally:
+        os.close(fd)
 
 
 def _compile(cc: str, include: str, folder: Path, library: Path) -> None:
-    folder.mkdir(exist_ok=True, mode=0o755)
-    partial = Path(tempfile.mkdtemp(prefix=".tmp-", dir=folder)) / library.name
-    cmd = cc.split() + list(FLAGS) + _numpy_flags() + [f"-I{include}", "-o", str(partial), str(SOURCE), "-lm"]
-    code, stderr = run_compiler(cmd, folder)
-    if code != 0:
-        raise BuildError(f"compiling {SOURCE.name} failed ({' '.join(cmd)}):\n{stderr[-2000:]}")
-    os.replace(partial, library)
-    partial.parent.rmdir()
-    (folder / "sha256").write_text(sha256_file(library))
+    staging = Path(tempfile.mkdtemp(prefix=".tmp-", dir=folder))
+    partial = staging / library.name
+    try:
+        cmd = cc.split() + list(FLAGS) + _numpy_flags() + [f"-I{include}", "-o", str(partial), str(SOURCE), "-lm"]
+        code, stderr = run_compiler(cmd, folder)
+        if code != 0:
+            raise BuildError(f"compiling {SOURCE.name} failed ({' '.join(cmd)}):\n{stderr[-2000:]}")
+        os.chmod(partial, 0o755)
+        os.replace(partial, library)
+    finally:
+        partial.unlink(missing_ok=True)
+        staging.rmdir()
+    write_exclusive(folder / "sha256", sha256_file(library))
 
 
 def _import(library: Path):
-    loader = importlib.machinery.ExtensionFileLoader(MODULE, str(library))
-    spec = importlib.util.spec_from_file_location(MODULE, library, loader=loader)
-    module = importlib.util.module_from_spec(spec)
-    loader.exec_module(module)
-    return module
+    """Import the extension, only as the file whose SHA-256 matches the record (see :func:`_build`)."""
+    fd = open_checked(library)
+    try:
+        if sha256_fd(fd) != _recorded(library.parent):
+            raise ImportError(f"{library} does not match its recorded SHA-256; not imported")
+        loader = importlib.machinery.ExtensionFileLoader(MODULE, str(library))
+        spec = importlib.util.spec_from_file_location(MODULE, library, loader=loader)
+        module = importlib.util.module_from_spec(spec)
+        if not mapped_is(fd, library):
+            raise ImportError(f"{library} was replaced while it was being imported")
+        loader.exec_module(module)
+        return module
+    finally:
+        os.close(fd)
 
 
 def step(bound, t, dt, clock, slots: list[tuple], keep_alive, trusted: tuple | None = None):

@@ -23,9 +23,10 @@ import pkgutil
 import re
 import sys
 import textwrap
+import warnings
 from pathlib import Path
 
-from symkf.codegen import BuildError, build_model, export_bundle
+from symkf.codegen import BuildError, BundleRepairWarning, build_model, export_bundle
 from symkf.codegen.spec import ConfigError
 from symkf.models import ModelError
 from symkf.scenarios import cli_reference
@@ -89,7 +90,11 @@ def _option(text: str) -> tuple[str, object]:
 
 
 def _cmd_build(args) -> int:
-    result = build_model(args.model, force=args.force, **dict(args.set or []))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", BundleRepairWarning)         # said below, on one line
+        result = build_model(args.model, force=args.force, **dict(args.set or []))
+    if result.repaired:
+        print(f"{result.model}: {result.repaired} in {result.directory}; regenerated the bundle")
     if result.up_to_date:
         print(f"{result.model}: up to date ({result.directory}, checked in {result.seconds * 1e3:.0f} ms)")
     else:
@@ -136,7 +141,8 @@ def main(argv: list[str] | None = None) -> int:
                            epilog=cli_reference.models_text(), formatter_class=argparse.RawDescriptionHelpFormatter)
     build.add_argument("model", help="launcher | attitude | geo_satellite | marg | path/to/model.py | package.module")
     build.add_argument("--force", action="store_true", help="rebuild even if up to date")
-    build.add_argument("--out", type=Path, help="also copy the flight bundle (.c .h Makefile manifest .so) here")
+    build.add_argument("--out", type=Path, help="also export the flight bundle (.c .h Makefile manifest .so) here: only files that "
+                       "match their digests, whole or not at all, never over a symlink or another user's file")
     build.add_argument("--set", type=_option, action="append", metavar="KEY=VALUE",
                        help="a codegen option, e.g. rk4_substeps=2 (each configuration has its own folder; "
                             "symkf options lists them)")
@@ -156,6 +162,10 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.handler(args) or 0)
     except (BuildError, ConfigError, ModelError) as exc:
         print(f"symkf {args.command}: {exc}", file=sys.stderr)
+        return 1
+    except OSError as exc:                    # a fault outside the build folder (e.g. reading the model file)
+        where = f" ({exc.filename})" if exc.filename else ""
+        print(f"symkf {args.command}: {exc.strerror or exc}{where}", file=sys.stderr)
         return 1
 
 

@@ -17,8 +17,9 @@ def _switch_model(events=(1.0,)) -> Model:
     """dx/dt = 0 before t = 1 s, 1 after (right-continuous), dy/dt = x."""
     m = Model("step_input", "a unit step in the rate at t = 1 s")
     x = m.state("x", "-", "ramp")
-    m.state("y", "-", "integral of the ramp")
+    y = m.state("y", "-", "integral of the ramp")
     m.set_dynamics({"x": ca.if_else(m.t >= 1.0, 1.0, 0.0), "y": x})
+    m.measurement("y", [("y", "-", "the integral, measured", y)], sigma=[1.0])      # a model needs one
     m.events = events
     return m.validate()
 
