@@ -51,8 +51,9 @@ class Case:
     def id(self) -> str:
         return f"{Path(self.model).stem}-{self.name}-{self.measurement}"
 
-    def make(self, compiled):
-        return Filter(compiled, self.name, self.x0, self.P0, self.Q, t0=self.t0, **self.options)
+    def make(self, compiled, P_scale: float = 1.0):
+        P0 = None if self.P0 is None else self.P0 * P_scale
+        return Filter(compiled, self.name, self.x0, P0, self.Q, t0=self.t0, **self.options)
 
     def inputs(self, k: int) -> dict:
         return self.module.inputs(self, k)
