@@ -105,6 +105,13 @@ def _cmd_build(args) -> int:
     return 0
 
 
+def _cmd_plot(args) -> int:
+    from symkf.scenarios.launcher import series
+    for path in series.redraw(args.folder, args.out):
+        print(f"wrote {path}")
+    return 0
+
+
 def _dispatch(kind: str, argv: list[str]) -> int:
     if argv and argv[0] in ("-h", "--help"):
         print(_listing(kind))
@@ -155,6 +162,12 @@ def main(argv: list[str] | None = None) -> int:
                          else print(cli_reference.options_text()))
     families = sub.add_parser("families", help="list the filter families and what x0, P0 and Q mean for each")
     families.set_defaults(handler=lambda a: print(cli_reference.families_text()))
+    plot = sub.add_parser("plot", help="redraw the figures of a saved launcher comparison (no filter is run)",
+                          description="Redraw fig_velocity_rms.png, fig_radius_rms.png and fig_nees.png from the "
+                                      "series.npz that `symkf compare launcher` saved in FOLDER.")
+    plot.add_argument("folder", type=Path, help="a folder written by symkf compare launcher (e.g. results/launcher)")
+    plot.add_argument("--out", type=Path, help="where to write the figures (default: FOLDER)")
+    plot.set_defaults(handler=_cmd_plot)
     guidance = sub.add_parser("design-guidance", help="re-solve the launcher guidance with IPOPT")
     guidance.set_defaults(handler=lambda a: importlib.import_module("symkf.scenarios.launcher.guidance").main())
     args = parser.parse_args(argv)

@@ -3,7 +3,8 @@
 4 cases (20 Hz and 10 Hz radar x small eq (9) and large eq (10) initial error), N runs each,
 both filters fed the same radar draws, the whole run of each filter in one compiled C call.
 Writes to --out: rms_table.csv, rms_table.md, fig_velocity_rms.png, fig_radius_rms.png,
-fig_nees.png (scenarios/launcher/figures.py), summary.json. Tuning and truth: scenarios/launcher/campaign.py,
+fig_nees.png (scenarios/launcher/figures.py), summary.json, series.npz (the figures' series:
+``symkf plot <out>`` redraws them without running a filter). Tuning and truth: scenarios/launcher/campaign.py,
 truth.py.
 """
 from __future__ import annotations
@@ -18,7 +19,7 @@ import numpy as np
 
 from symkf.models import launcher as L
 from . import campaign as C
-from . import figures
+from . import figures, series
 from symkf.scenarios.campaign import ProgressBar, add_scheduler_arguments, scheduler_problem
 from .campaign import FILTERS, PRESETS, STATE_NAMES, TUNING, Campaign, CaseResult, consistency
 
@@ -88,6 +89,7 @@ def run(args) -> int:
     figures.plot_rms(results, "V", "Speed error RMS (m/s)", out / "fig_velocity_rms.png", config)
     figures.plot_rms(results, "r", "Radius error RMS (m)", out / "fig_radius_rms.png", config)
     figures.plot_nees(results, out / "fig_nees.png", config)
+    series.save(results, out, config)                     # symkf plot <out> redraws the figures from it
     written = time.perf_counter() - start - wall
     if not args.quiet:
         print(f"\nFilters: {args.filters}\n" + markdown_table(results, rows))

@@ -48,3 +48,19 @@ def test_the_rms_figures_put_the_papers_table_3_beside_ours(drawn):
     paper = {line.get_label(): line.get_ydata()[0] for line in small.get_lines() if line.get_label().startswith("paper")}
     assert sorted(paper.values()) == sorted(L.TABLE3[(20, "small")]["V"])
     assert any("whole-flight RMS" in text.get_text() for text in small.texts)
+
+
+def test_symkf_plot_redraws_the_saved_figures_without_a_filter(tmp_path, launcher_compiled, capsys, monkeypatch):
+    """`symkf plot <folder>` redraws the three figures from series.npz alone: the same PNG bytes as
+    the comparison wrote (no filter runs: the campaign is made unavailable first)."""
+    out, again = tmp_path / "run", tmp_path / "again"
+    assert main(["compare", "launcher", "--runs", "2", "--rates", "20", "--duration", "60", "--seed", "3",
+                 "--out", str(out), "--quiet"]) == 0
+    from symkf.scenarios.launcher import campaign
+    monkeypatch.setattr(campaign.Campaign, "run", lambda self: pytest.fail("symkf plot ran a campaign"))
+    assert main(["plot", str(out), "--out", str(again)]) == 0
+    for name in ("fig_velocity_rms.png", "fig_radius_rms.png", "fig_nees.png"):
+        assert (again / name).read_bytes() == (out / name).read_bytes(), name
+    capsys.readouterr()
+    assert main(["plot", str(tmp_path / "nothing")]) == 1
+    assert "no saved series; `symkf compare launcher --out" in capsys.readouterr().err
