@@ -20,8 +20,9 @@ from symkf.models import get_model
 from .backends import CompiledBackend, StaleLibraryError, SymkfError, VirtualMachineBackend
 from .filters import Filter
 from .runs import RunResult
+from .smoothing import SmoothedRun, smooth
 
-__all__ = ["CompiledModel", "Filter", "RunResult", "StaleLibraryError", "SymkfError", "load"]
+__all__ = ["CompiledModel", "Filter", "RunResult", "SmoothedRun", "StaleLibraryError", "SymkfError", "load", "smooth"]
 
 
 class CompiledModel:

@@ -23,7 +23,7 @@ from copy import deepcopy
 import numpy as np
 
 from symkf.codegen.spec import FilterSpec
-from . import calls, contract, runs
+from . import calls, contract, runs, smoothing
 from .buffers import fits, kernel_roles, make_buffers
 from .contract import covariance, read_only
 from .fastpath import FastPath
@@ -299,7 +299,7 @@ class Filter:
 
     # ------------------------------------------------------------------ whole runs
     def run(self, times, z, measurement: str | None = None, q=None, mask=None, u=None,
-            nan: str = "raise") -> RunResult:
+            nan: str = "raise", smooth: bool = False) -> RunResult:
         """Filter a whole record in one compiled call: step k predicts from times[k-1] to times[k]
         (the first step has dt = 0) and updates with z[k]. The filter's x, P and t end at the last
         step. A step that fails keeps the state and records its code in ``status``.
@@ -307,17 +307,21 @@ class Filter:
         Args:
             times: (N,) strictly increasing; z: (N, m); q: (N, nq) or (nq,); mask: (N, m) or None;
             u: (N, nu) or (nu,) or None (the current input held).
+            smooth: also smooth the run (fixed-interval, :func:`symkf.runtime.smoothing.smooth`):
+                a SmoothedRun with ``x_smooth``, ``P_smooth`` beside the filtered x, P.
         """
         name = calls.measurement_name(self, measurement, "step")
         times = contract.run_times(times)
         per_step = {"t": np.concatenate([times[:1], times[:-1]]), "dt": np.diff(times, prepend=times[:1])}
-        return runs.run(self, name, per_step, {"z": z, "q": q, "mask": mask}, u, nan)
+        result = runs.run(self, name, per_step, {"z": z, "q": q, "mask": mask}, u, nan)
+        return smoothing.smooth(self, result) if smooth else result
 
     def run_steps(self, dt, z, measurement: str | None = None, q=None, mask=None, u=None,
-                  nan: str = "raise") -> RunResult:
+                  nan: str = "raise", smooth: bool = False) -> RunResult:
         """:meth:`run` given step lengths from the filter's time: step k predicts over dt[k] (> 0;
         the first may be 0) and updates with z[k]; arguments as :meth:`run`."""
         name = calls.measurement_name(self, measurement, "step")
         dt = contract.run_steps(dt)
         per_step = {"t": self.t + np.concatenate([[0.0], np.cumsum(dt)])[:-1], "dt": dt}
-        return runs.run(self, name, per_step, {"z": z, "q": q, "mask": mask}, u, nan)
+        result = runs.run(self, name, per_step, {"z": z, "q": q, "mask": mask}, u, nan)
+        return smoothing.smooth(self, result) if smooth else result

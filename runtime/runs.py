@@ -4,7 +4,7 @@ loop (the generated C ``<kernel>_run`` or, on the CasADi-VM backend, the same ke
 step) and its :class:`RunResult`."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -20,6 +20,9 @@ class RunResult:
     x: np.ndarray                  # (N, n)
     P: np.ndarray | None           # (N, n, n), None for a filter without covariance
     status: np.ndarray             # (N,) int: 0, SYMKF_GATED or a SYMKF_ERR_* code
+    #: The run's per-step t, dt (and u) and the constants its kernel read, by argument name, as the
+    #: kernels take them: what a smoother needs (runtime/smoothing.py).
+    inputs: dict = field(default_factory=dict, repr=False)
 
     @property
     def failed_steps(self) -> np.ndarray:
@@ -129,7 +132,9 @@ def run(filt, name: str, per_step: dict, given: dict, u, nan: str) -> RunResult:
     P = np.transpose(histories["P"], (0, 2, 1)) if "P" in histories else None
     if filt._scaling is not None:
         x, P = filt._scaling.x_from_kernel(x), None if P is None else filt._scaling.P_from_kernel(P)
-    return RunResult(np.asarray(x, dtype=float), None if P is None else np.asarray(P, dtype=float), status)
+    inputs = {n: a.copy() for (n, _), a in zip(info.inputs, arrays)
+              if n not in filt.spec.state and (n in ("t", "dt", "u") or n not in info.per_step)}
+    return RunResult(np.asarray(x, dtype=float), None if P is None else np.asarray(P, dtype=float), status, inputs)
 
 
 def _run_in_python(filt, kernel, info, arrays, histories, status) -> None:

@@ -16,6 +16,7 @@ import casadi as ca
 from ..spec import STATUS_CODES, STATUS_GATED, STATUS_NONFINITE, Arg, Bundle, Kernel
 from .api import param_list, passing, run_params, trusted_kernels
 from .names import GENERATED_NOTICE, ascii_text
+from .smooth_loop import smooth_doc, smooth_params
 from .stack import STACK_PLACEHOLDER
 from .template_util import template_text
 
@@ -31,6 +32,9 @@ def _number(value) -> str:
 def _time_doc(kernel: Kernel) -> list[str]:
     """Which instant each time argument means, stated per kind of function."""
     names = {a.name for a in kernel.inputs}
+    if kernel.backward:
+        return [" * Time: x and P (filtered) and the outputs xs, Ps (smoothed) are the estimate at time t; the inputs",
+                " *   xs, Ps are the smoothed estimate at t + dt (the step [t, t + dt] follows this estimate)."]
     if "_step_" in kernel.name and {"t", "dt"} <= names:
         return [" * Time: x and P are the estimate at time t; the measurement z was taken at t + dt.",
                 " *   The step predicts from t to t + dt, then updates at t + dt; outputs are at t + dt.",
@@ -148,6 +152,10 @@ def _function_doc(model: str, kernel: Kernel, trusted: bool = False) -> list[str
                   " */",
                   f"#define {_macro(name)}_RUN_STACK_BYTES {STACK_PLACEHOLDER.format(name + '_run')}",
                   f"SYMKF_API int {name}_run({', '.join(run_params(kernel))});", ""]
+    if kernel.backward:
+        lines += smooth_doc(model, kernel) + [
+            f"#define {_macro(name)}_RUN_STACK_BYTES {STACK_PLACEHOLDER.format(name + '_run')}",
+            f"SYMKF_API int {name}_run({', '.join(smooth_params(kernel))});", ""]
     return lines
 
 

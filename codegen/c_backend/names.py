@@ -65,7 +65,8 @@ def function_symbol(model: str, name: str) -> str:
 
 
 #: Suffixes of the exported C functions of kernel ``<model>_<kernel>``, each with the kernels that
-#: have it: "all", "trusted" (a run loop's trusted partner) or "runnable" (a filter step).
+#: have it: "all", "trusted" (a run loop's trusted partner) or "runnable" (a filter step, or a
+#: smoother's backward step: its loop runs backward over a forward run).
 PUBLIC_SUFFIXES = (("", "all"), ("_v", "all"), ("_unchecked_v", "trusted"), ("_run", "runnable"))
 #: Suffixes of the API unit's static functions of a kernel (not exported, but in the same unit).
 STATIC_SUFFIXES = ("_eval", "_eval_into", "_unchecked")
@@ -74,7 +75,7 @@ STATIC_SUFFIXES = ("_eval", "_eval_into", "_unchecked")
 def public_names(model: str, kernel: Kernel, trusted: bool = False) -> list[str]:
     """The exported C functions of a kernel, in header order; ``trusted``: it is a run loop's
     trusted partner (:func:`~symkf.codegen.c_backend.api.trusted_kernels`)."""
-    has = {"all": True, "trusted": trusted, "runnable": kernel.runnable}
+    has = {"all": True, "trusted": trusted, "runnable": kernel.runnable or bool(kernel.backward)}
     return [f"{model}_{kernel.name}{suffix}" for suffix, which in PUBLIC_SUFFIXES if has[which]]
 
 
