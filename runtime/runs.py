@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from symkf.codegen.spec import STATUS_GATED
-from . import contract
+from . import contract, innovations
 from .buffers import buffer, fits
 
 
@@ -23,6 +23,13 @@ class RunResult:
     #: The run's per-step t, dt (and u) and the constants its kernel read, by argument name, as the
     #: kernels take them: what a smoother needs (runtime/smoothing.py).
     inputs: dict = field(default_factory=dict, repr=False)
+    #: Each step's innovation y (N, m), its covariance S (N, m, m) and the normalised innovation
+    #: squared y^T S^-1 y (N,) with its degrees of freedom (N,): runtime/innovations.py. NaN for
+    #: a step that failed; None for a filter whose run keeps no innovations.
+    y: np.ndarray | None = field(default=None, repr=False)
+    S: np.ndarray | None = field(default=None, repr=False)
+    nis: np.ndarray | None = field(default=None, repr=False)
+    nis_dof: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def failed_steps(self) -> np.ndarray:
@@ -115,14 +122,15 @@ def run(filt, name: str, per_step: dict, given: dict, u, nan: str) -> RunResult:
     arrays = [np.ascontiguousarray(per_step[n], dtype=dtype) if n in info.per_step
               else np.asfortranarray(constants[n], dtype=dtype) for n, _ in info.inputs]
     histories = {n: np.zeros((n_steps,) + filt._buffers[n].shape[::-1], dtype) for n in filt.spec.state}
+    kept = {n: np.zeros((n_steps,) + buffer(shape).shape[::-1], dtype) for n, shape in info.outputs if n in info.diagnosed}
     status = np.zeros(n_steps, dtype=np.intc)
     filt._fast.before_write()
-    loop = filt._backend.run_function(kernel)
+    loop = filt._backend.run_function(kernel, diagnostics=bool(kept))
     if loop is not None:
         loop(n_steps, *[a.ctypes.data for a in arrays], *[histories[n].ctypes.data for n in filt.spec.state],
-             status.ctypes.data)
+             *[a.ctypes.data for a in kept.values()], status.ctypes.data)
     else:
-        _run_in_python(filt, kernel, info, arrays, histories, status)
+        _run_in_python(filt, kernel, info, arrays, {**histories, **kept}, status)
     if n_steps:
         for n in filt.spec.state:
             filt._buffers[n][...] = histories[n][-1].T
@@ -134,7 +142,8 @@ def run(filt, name: str, per_step: dict, given: dict, u, nan: str) -> RunResult:
         x, P = filt._scaling.x_from_kernel(x), None if P is None else filt._scaling.P_from_kernel(P)
     inputs = {n: a.copy() for (n, _), a in zip(info.inputs, arrays)
               if n not in filt.spec.state and (n in ("t", "dt", "u") or n not in info.per_step)}
-    return RunResult(np.asarray(x, dtype=float), None if P is None else np.asarray(P, dtype=float), status, inputs)
+    return RunResult(np.asarray(x, dtype=float), None if P is None else np.asarray(P, dtype=float), status, inputs,
+                     **innovations.of_run(kept, per_step.get("mask"), status))
 
 
 def _run_in_python(filt, kernel, info, arrays, histories, status) -> None:

@@ -18,7 +18,7 @@ filtered estimate and its code is in ``smooth_status``).
 from __future__ import annotations
 
 import ctypes
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 
@@ -148,5 +148,6 @@ def _result(filt, result: RunResult, xs: np.ndarray, Ps: np.ndarray, codes: np.n
     P_smooth = np.transpose(Ps, (0, 2, 1))
     if filt._scaling is not None:
         xs, P_smooth = filt._scaling.x_from_kernel(xs), filt._scaling.P_from_kernel(P_smooth)
-    return SmoothedRun(result.x, result.P, result.status, result.inputs, np.asarray(xs, dtype=float),
-                       np.asarray(P_smooth, dtype=float), codes)
+    forward = {f.name: getattr(result, f.name) for f in fields(RunResult)}
+    return SmoothedRun(**forward, x_smooth=np.asarray(xs, dtype=float), P_smooth=np.asarray(P_smooth, dtype=float),
+                       smooth_status=codes)

@@ -10,7 +10,7 @@ from __future__ import annotations
 import casadi as ca
 
 from ..spec import Arg, Bundle, Kernel
-from .arguments import finite_terms, passing, sanitised_z
+from .arguments import diagnosed, finite_terms, passing, sanitised_z
 from .casadi_text import math_block
 from .names import GENERATED_NOTICE, ascii_text, public_names, raw_name
 from .smooth_loop import smooth_loop
@@ -151,7 +151,9 @@ def trusted_kernels(bundle: Bundle) -> list[Kernel]:
     return [k for k in bundle.kernels if k.name in names]
 
 
-def run_params(kernel: Kernel) -> list[str]:
+def run_params(kernel: Kernel, diagnostics: bool = False) -> list[str]:
+    """The parameters of ``<kernel>_run`` (``diagnostics``: of ``<kernel>_run_diag``, which also
+    takes a history of each of :func:`diagnosed`'s outputs)."""
     params = ["int n_steps"]
     for a in kernel.inputs:
         how = passing(a, kernel, run=True)
@@ -166,6 +168,7 @@ def run_params(kernel: Kernel) -> list[str]:
         else:
             params.append(f"const casadi_real {a.name}[{a.size}]")
     params += [f"casadi_real *{name}_hist" for name in kernel.carried]
+    params += [f"casadi_real *{a.name}_hist" for a in diagnosed(kernel)] if diagnostics else []
     params += ["int *status_hist"]
     return params
 
@@ -189,8 +192,10 @@ def _run_address(a: Arg, kernel: Kernel) -> str:
     return f"&{a.name}" if passing(a, kernel) == "value" else a.name
 
 
-def _run_loop(model: str, kernel: Kernel, kernels: dict[str, Kernel]) -> str:
+def _run_loop(model: str, kernel: Kernel, kernels: dict[str, Kernel], diagnostics: bool = False) -> str:
     """``<kernel>_run``: the filter's time loop; a failed step keeps the state and records its code.
+    ``diagnostics``: ``<kernel>_run_diag``, the same loop writing step k's y and S (:func:`diagnosed`)
+    into row k of their histories (a failed step's row is unspecified).
 
     The inputs that do not change along the run (parameters, noise, the initial state) are checked
     once, the per-step ones (t, dt, z, ...) at each step: a state a step returns is finite (checked
@@ -201,12 +206,13 @@ def _run_loop(model: str, kernel: Kernel, kernels: dict[str, Kernel]) -> str:
     outputs = {a.name: a for a in kernel.outputs}
     sanitised = sanitised_z(kernel)
     trusted = kernels[kernel.trusted] if kernel.trusted else None
-    lines = [f"int {model}_{kernel.name}_run({', '.join(run_params(kernel))}) {{"]
+    suffix, kept = ("_run_diag", {a.name for a in diagnosed(kernel)}) if diagnostics else ("_run", set())
+    lines = [f"int {model}_{kernel.name}{suffix}({', '.join(run_params(kernel, diagnostics))}) {{"]
     for name in kernel.carried:     # a copy: the caller's x0 may be a row of its own x_hist
         lines.append(f"  casadi_real {name}_first[{max(outputs[name].size, 1)}];")
         lines.append(f"  const casadi_real *{name} = {name}_first;")
     for a in kernel.outputs[:-1]:
-        if a.name not in kernel.carried and a.size:
+        if a.name not in kernel.carried and a.size and a.name not in kept:
             lines.append(f"  casadi_real {a.name}_scratch[{a.size}];")
     if sanitised:
         lines.append(f"  casadi_real z_used[{next(a.size for a in kernel.inputs if a.name == 'z')}];")
@@ -234,7 +240,8 @@ def _run_loop(model: str, kernel: Kernel, kernels: dict[str, Kernel]) -> str:
             return _z_used(kernel)
         return a.name if a.name in kernel.carried else _step_argument(a, kernel)
     call = [argument(a) for a in kernel.inputs if passing(a, kernel) != "omit"]
-    call += [f"{a.name}_at" if a.name in kernel.carried else f"{a.name}_scratch" for a in kernel.outputs[:-1] if a.size]
+    call += [f"{a.name}_at" if a.name in kernel.carried else f"{a.name}_hist + (long) k * {a.size}" if a.name in kept
+             else f"{a.name}_scratch" for a in kernel.outputs[:-1] if a.size]
     calls = _run_calls(model, kernel, trusted, f"({', '.join(call)});")
     if sanitised:
         size = next(a.size for a in kernel.inputs if a.name == "z")
@@ -305,6 +312,7 @@ def api_unit(bundle: Bundle) -> str:
     functions += [_wrapper(model, kernel) for kernel in bundle.kernels]
     functions += [_wrapper(model, kernel, unchecked=True) for kernel in trusted_kernels(bundle)]
     functions += [_run_loop(model, kernel, by_name) for kernel in bundle.kernels if kernel.runnable]
+    functions += [_run_loop(model, kernel, by_name, diagnostics=True) for kernel in bundle.kernels if diagnosed(kernel)]
     functions += [smooth_loop(model, kernel) for kernel in bundle.kernels if kernel.backward]
     parts = [f"/* {GENERATED_NOTICE.format(model=model)}",
              f" * CasADi {ca.__version__}. */",

@@ -28,3 +28,9 @@ def finite_terms(kernel: Kernel, names, where) -> list[str]:
     ``where(a)`` is the C expression of input ``a``'s first element's address."""
     return [f"symkf_finite({where(a)}, {a.size})" for a in kernel.inputs
             if a.name in names and passing(a, kernel) != "omit" and not (a.name == "z" and sanitised_z(kernel))]
+
+
+def diagnosed(kernel: Kernel) -> list[Arg]:
+    """The outputs of a run kernel besides its carried state (a step's y and S): a ``_run_diag``
+    loop writes them per step into histories."""
+    return [a for a in kernel.outputs[:-1] if a.name not in kernel.carried and a.size] if kernel.runnable else []

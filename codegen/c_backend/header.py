@@ -15,6 +15,7 @@ import casadi as ca
 
 from ..spec import STATUS_CODES, STATUS_GATED, STATUS_NONFINITE, Arg, Bundle, Kernel
 from .api import param_list, passing, run_params, trusted_kernels
+from .arguments import diagnosed
 from .names import GENERATED_NOTICE, ascii_text
 from .smooth_loop import smooth_doc, smooth_params
 from .stack import STACK_PLACEHOLDER
@@ -152,6 +153,18 @@ def _function_doc(model: str, kernel: Kernel, trusted: bool = False) -> list[str
                   " */",
                   f"#define {_macro(name)}_RUN_STACK_BYTES {STACK_PLACEHOLDER.format(name + '_run')}",
                   f"SYMKF_API int {name}_run({', '.join(run_params(kernel))});", ""]
+    if diagnosed(kernel):
+        kept = diagnosed(kernel)
+        lines += ["/**", f" * {name}_run_diag: {name}_run that also keeps each step's "
+                  + " and ".join(a.name for a in kept) + " (as the step returns them):",
+                  " *   " + ", ".join(f"{a.name}_hist[k * {a.size} ...]" for a in kept)
+                  + " (n_steps blocks each; a failed step's block is unspecified),",
+                  " *   e.g. for the normalised innovation squared y^T S^-1 y of every step.",
+                  " * Returns: as _run.",
+                  f" * Stack: {_macro(name)}_RUN_DIAG_STACK_BYTES bytes (worst call path, measured by the compiler).",
+                  " */",
+                  f"#define {_macro(name)}_RUN_DIAG_STACK_BYTES {STACK_PLACEHOLDER.format(name + '_run_diag')}",
+                  f"SYMKF_API int {name}_run_diag({', '.join(run_params(kernel, diagnostics=True))});", ""]
     if kernel.backward:
         lines += smooth_doc(model, kernel) + [
             f"#define {_macro(name)}_RUN_STACK_BYTES {STACK_PLACEHOLDER.format(name + '_run')}",

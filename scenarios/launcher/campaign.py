@@ -46,7 +46,8 @@ from symkf.codegen.model_functions import ModelFunctions
 from symkf.models import get_model
 from symkf.models import launcher as L
 from symkf.scenarios.campaign import ModelKey, Task, chunks, compiled_model, model_key, run_campaign, run_rng
-from symkf.scenarios.metrics import ErrorAccumulator, nees, nees_band, state_error, whole_flight_mean
+from symkf.scenarios.consistency import chi2_band
+from symkf.scenarios.metrics import ErrorAccumulator, nees, state_error, whole_flight_mean
 from .truth import propagate, radar_track
 
 STATE_NAMES = ("V", "gamma", "psi", "r", "theta", "phi")
@@ -315,7 +316,7 @@ def consistency(result: CaseResult, family: str) -> dict:
     """Mean NEES and the fraction of time steps inside the 95 % chi-square band, over the whole
     flight and outside EVENT_WINDOW_S after lift-off and each model event."""
     accumulator = result.errors[family]
-    low, high = nees_band(6, accumulator.runs)
+    low, high = (float(v) for v in chi2_band(6 * accumulator.runs, accumulator.runs))    # chi2(6 runs) / runs
     average = accumulator.mean_nees()
     inside = (average >= low) & (average <= high)
     times = result.times[::accumulator.nees_stride]
