@@ -23,7 +23,7 @@ from copy import deepcopy
 import numpy as np
 
 from symkf.codegen.spec import FilterSpec
-from . import calls, contract, runs, smoothing
+from . import calls, contract, multi_runs, runs, smoothing
 from .buffers import fits, kernel_roles, make_buffers
 from .contract import covariance, read_only
 from .fastpath import FastPath
@@ -315,6 +315,12 @@ class Filter:
         per_step = {"t": np.concatenate([times[:1], times[:-1]]), "dt": np.diff(times, prepend=times[:1])}
         result = runs.run(self, name, per_step, {"z": z, "q": q, "mask": mask}, u, nan)
         return smoothing.smooth(self, result) if smooth else result
+
+    def run_multi(self, times, z: dict, q: dict | None = None, mask: dict | None = None, u=None,
+                  nan: str = "raise"):
+        """:meth:`run` over a record of several measurements ({name: array}), in one compiled call:
+        :func:`symkf.runtime.multi_runs.run_multi`."""
+        return multi_runs.run_multi(self, times, z, q, mask, u, nan)
 
     def run_steps(self, dt, z, measurement: str | None = None, q=None, mask=None, u=None,
                   nan: str = "raise", smooth: bool = False) -> RunResult:

@@ -13,6 +13,7 @@ from ..spec import Arg, Bundle, Kernel
 from .arguments import diagnosed, finite_terms, passing, sanitised_z
 from .casadi_text import math_block
 from .names import GENERATED_NOTICE, ascii_text, public_names, raw_name
+from .multi_loop import multi_filters, multi_loop
 from .smooth_loop import smooth_loop
 from .template_util import template_text
 
@@ -314,6 +315,7 @@ def api_unit(bundle: Bundle) -> str:
     functions += [_run_loop(model, kernel, by_name) for kernel in bundle.kernels if kernel.runnable]
     functions += [_run_loop(model, kernel, by_name, diagnostics=True) for kernel in bundle.kernels if diagnosed(kernel)]
     functions += [smooth_loop(model, kernel) for kernel in bundle.kernels if kernel.backward]
+    functions += [multi_loop(model, spec, by_name) for spec in multi_filters(bundle)]
     parts = [f"/* {GENERATED_NOTICE.format(model=model)}",
              f" * CasADi {ca.__version__}. */",
              "#include <math.h>",
@@ -348,4 +350,4 @@ def public_functions(bundle: Bundle) -> list[str]:
     trusted = {k.name for k in trusted_kernels(bundle)}
     for kernel in bundle.kernels:
         names += public_names(bundle.model_name, kernel, kernel.name in trusted)
-    return names
+    return names + [f"{bundle.model_name}_{spec.name}_run_multi" for spec in multi_filters(bundle)]

@@ -17,6 +17,7 @@ from ..spec import STATUS_CODES, STATUS_GATED, STATUS_NONFINITE, Arg, Bundle, Ke
 from .api import param_list, passing, run_params, trusted_kernels
 from .arguments import diagnosed
 from .names import GENERATED_NOTICE, ascii_text
+from .multi_loop import multi_doc, multi_filters, multi_params
 from .smooth_loop import smooth_doc, smooth_params
 from .stack import STACK_PLACEHOLDER
 from .template_util import template_text
@@ -259,6 +260,12 @@ def header(bundle: Bundle, content_hash: str, compiler: str = "cc", flags: str =
     trusted = {k.name for k in trusted_kernels(bundle)}
     for kernel in bundle.kernels:
         lines += _function_doc(model, kernel, kernel.name in trusted)
+    by_name = {k.name: k for k in bundle.kernels}
+    for spec in multi_filters(bundle):
+        name = f"{model}_{spec.name}_run_multi"
+        lines += multi_doc(model, spec, by_name) + [
+            f"#define {_macro(name)}_STACK_BYTES {STACK_PLACEHOLDER.format(name)}",
+            f"SYMKF_API int {name}({', '.join(multi_params(spec, by_name))});", ""]
     lines += ["#ifdef __cplusplus", "}", "#endif", f"#endif /* {guard} */", ""]
     return ascii_text("\n".join(lines))
 
