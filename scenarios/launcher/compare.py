@@ -2,8 +2,9 @@
 
 4 cases (20 Hz and 10 Hz radar x small eq (9) and large eq (10) initial error), N runs each,
 both filters fed the same radar draws, the whole run of each filter in one compiled C call.
-Writes to --out: rms_table.csv, rms_table.md, fig_velocity_rms.png, fig_radius_rms.png,
-fig_nees.png, summary.json. Tuning and truth: scenarios/launcher/campaign.py, truth.py.
+Writes to --out: rms_table.csv (with the smoothers' columns ekf_rts, ukf_rts), rms_table.md,
+fig_velocity_rms.png, fig_radius_rms.png, fig_nees.png, fig_smoother_rms.png (filter vs smoother
+speed RMS(t)), summary.json. Tuning and truth: scenarios/launcher/campaign.py, truth.py.
 """
 from __future__ import annotations
 
@@ -18,7 +19,7 @@ import numpy as np
 from symkf.models import launcher as L
 from . import campaign as C
 from symkf.scenarios.campaign import ProgressBar, add_scheduler_arguments, scheduler_problem
-from .campaign import FILTERS, PRESETS, STATE_NAMES, TUNING, Campaign, CaseResult, consistency
+from .campaign import FILTERS, PRESETS, SMOOTHED, STATE_NAMES, TUNING, Campaign, CaseResult, consistency
 
 UNITS = dict(zip(STATE_NAMES, L.TABLE3_UNITS))
 EVENT_LINES = ((L.T_STAGE1_BURNOUT, "staging"), (L.T_STAGE2_IGNITION, "2nd ignition"),
@@ -87,6 +88,7 @@ def run(args) -> int:
     plot_rms(results, 0, "V", "Speed error RMS (m/s)", out / "fig_velocity_rms.png")
     plot_rms(results, 3, "r", "Radius error RMS (m)", out / "fig_radius_rms.png")
     plot_nees(results, out / "fig_nees.png")
+    plot_smoother_rms(results, 0, "Speed error RMS (m/s)", out / "fig_smoother_rms.png")
     written = time.perf_counter() - start - wall
     if not args.quiet:
         print(f"\nFilters: {args.filters}\n" + markdown_table(results, rows))
@@ -100,6 +102,7 @@ def run(args) -> int:
             if isinstance(value, bool):
                 print(f"  {claim}: {value}")
         print(f"  ukf_le_ekf_every_state: {summary['claims']['ukf_le_ekf_every_state']}")
+        print(f"  smoothed RMS above the filter's in: {summary['claims']['rts_above_filter_cells'] or 'no cell'}")
         print(f"wrote {out}/ in {wall + written:.1f} s: campaign {wall:.1f} s ({campaign.stats.executor}, "
               f"{campaign.stats.workers} workers), tables and figures {written:.1f} s")
     return 0
@@ -119,7 +122,8 @@ def table_rows(results: list[CaseResult]) -> list[dict]:
             paper_ekf, paper_ukf = L.TABLE3[key][state]
             rows.append({"state": state, "unit": UNITS[state], "case": result.case.label,
                          "ekf": float(ours["ekf"][i]), "ukf": float(ours["ukf"][i]),
-                         "paper_ekf": paper_ekf, "paper_ukf": paper_ukf})
+                         "paper_ekf": paper_ekf, "paper_ukf": paper_ukf,
+                         **{s: float(result.whole_flight(s)[i]) for s in SMOOTHED}})
     return rows
 
 
@@ -141,6 +145,15 @@ def markdown_table(results: list[CaseResult], rows: list[dict]) -> str:
         for case in cases:
             row = next(r for r in rows if r["state"] == state and r["case"] == case)
             cells += [f"{row['ekf']:.3g} ({row['paper_ekf']:.3g})", f"{row['ukf']:.3g} ({row['paper_ukf']:.3g})"]
+        lines.append(f"| {state} ({UNITS[state]}) | " + " | ".join(cells) + " |")
+    lines += ["", "Fixed-interval smoothing of the same runs (RTS over the EKF, unscented RTS over the UKF): "
+              "smoothed (filtered)", "", "| State | " + " | ".join(f"{c} EKF+RTS | {c} UKF+RTS" for c in cases) + " |",
+              rule]
+    for state in STATE_NAMES:
+        cells = []
+        for case in cases:
+            row = next(r for r in rows if r["state"] == state and r["case"] == case)
+            cells += [f"{row[f + '_rts']:.3g} ({row[f]:.3g})" for f in FILTERS]
         lines.append(f"| {state} ({UNITS[state]}) | " + " | ".join(cells) + " |")
     runs = results[0].errors["ekf"].runs
     for kind, threshold in (("diverged", f"angle error still above {C.DIVERGED_ANGLE_RAD} rad in the second half"),
@@ -183,7 +196,7 @@ def make_summary(results: list[CaseResult], args, wall: float, campaign: Campaig
     cases = {}
     for result in results:
         entry = {}
-        for family in FILTERS:
+        for family in FILTERS + SMOOTHED:
             entry[family] = {
                 "rms_eq11": dict(zip(STATE_NAMES, result.whole_flight(family).tolist())),
                 **consistency(result, family),
@@ -214,7 +227,8 @@ def claims(results: list[CaseResult]) -> dict:
     by_label = {r.case.label: r for r in results}
     ratio = {label: r.whole_flight("ekf") / np.maximum(r.whole_flight("ukf"), 1e-300) for label, r in by_label.items()}
     ukf_better = {label: bool(np.all(r.whole_flight("ukf") <= r.whole_flight("ekf"))) for label, r in by_label.items()}
-    out = {"ukf_le_ekf_every_state": ukf_better,
+    out = {"ukf_le_ekf_every_state": ukf_better, "rts_le_filter_every_cell": smoother_exceptions(results) == [],
+           "rts_above_filter_cells": smoother_exceptions(results),
            "ekf_over_ukf_ratio": {label: dict(zip(STATE_NAMES, np.round(v, 3).tolist())) for label, v in ratio.items()}}
     for rate in {r.case.rate_hz for r in results}:
         small, large = by_label.get(f"{rate}Hz small"), by_label.get(f"{rate}Hz large")
@@ -227,6 +241,13 @@ def claims(results: list[CaseResult]) -> dict:
             out[f"gap_larger_at_10Hz_{init}"] = bool(
                 np.median(ratio[slow.case.label]) > GAP_MARGIN * np.median(ratio[fast.case.label]))
     return out
+
+
+def smoother_exceptions(results: list[CaseResult]) -> list[str]:
+    """The cells (case, state, filter) whose smoothed whole-flight RMS exceeds the filter's."""
+    return [f"{r.case.label} {state} {family.upper()}" for r in results for family in FILTERS
+            for state, smoothed, filtered in zip(STATE_NAMES, r.whole_flight(f"{family}_rts"), r.whole_flight(family))
+            if smoothed > filtered]
 
 
 # ---------------------------------------------------------------------- figures
@@ -258,6 +279,26 @@ def plot_rms(results: list[CaseResult], index: int, state: str, ylabel: str, pat
             ax.semilogy(result.times, result.rms_in_table_units(family)[:, index], style, lw=1, label=family.upper())
         _mark_events(ax, result.times[-1])
         ax.set_title(f"{result.case.label} initial error ({result.errors['ekf'].runs} runs)")
+        ax.set_ylabel(ylabel)
+        ax.legend(loc="upper right")
+    _label_time_axis(axes)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def plot_smoother_rms(results: list[CaseResult], index: int, ylabel: str, path: Path) -> None:
+    """RMS(t) of one state, each filter beside its fixed-interval smoothing."""
+    plt, fig, axes, placed = _panels(results)
+    for result in results:
+        ax = placed[result.case.label]
+        for family, color in (("ekf", "tab:red"), ("ukf", "tab:blue")):
+            ax.semilogy(result.times, result.rms_in_table_units(family)[:, index], "--", color=color, lw=1,
+                        label=family.upper())
+            ax.semilogy(result.times, result.rms_in_table_units(f"{family}_rts")[:, index], "-", color=color, lw=1,
+                        label=f"{family.upper()} + RTS")
+        _mark_events(ax, result.times[-1])
+        ax.set_title(f"{result.case.label} initial error: filter vs smoother ({result.errors['ekf'].runs} runs)")
         ax.set_ylabel(ylabel)
         ax.legend(loc="upper right")
     _label_time_axis(axes)
