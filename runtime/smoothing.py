@@ -78,8 +78,10 @@ def _kernel_state(filt, result: RunResult) -> tuple[np.ndarray, np.ndarray]:
     if not result.inputs:
         raise ValueError("smooth: this RunResult records no run inputs; smooth the result of Filter.run or run_steps")
     x, P = np.asarray(result.x, float), np.asarray(result.P, float)
-    if x.shape[1:] != (filt.n,) or P.shape != x.shape + (filt.n,):
-        raise ValueError(f"smooth: the run's x {x.shape} and P {P.shape} do not fit filter '{filt.family}' (n = {filt.n})")
+    m = filt._buffers["P"].shape[0]             # the error state's dimension on a manifold
+    if x.shape[1:] != (filt.n,) or P.shape != (len(x), m, m):
+        raise ValueError(f"smooth: the run's x {x.shape} and P {P.shape} do not fit filter '{filt.family}' "
+                         f"(x: {filt.n}, P: {m} x {m})")
     if filt._scaling is not None:
         x, P = filt._scaling.x_to_kernel(x), filt._scaling.P_to_kernel(P)
     return (np.ascontiguousarray(x, dtype=filt._dtype),

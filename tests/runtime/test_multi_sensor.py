@@ -25,11 +25,7 @@ def record():
     rng = np.random.default_rng(0)
     times = np.arange(N) * DT
     rates = np.stack([0.1 * np.sin(0.3 * times), 0.05 * np.ones(N), -0.08 * np.cos(0.2 * times)], axis=1)
-    attitude, body = Rotation.identity(), []
-    for k in range(N):
-        if k:
-            attitude = attitude * Rotation.from_rotvec(rates[k - 1] * DT)
-        body.append(attitude.inv())
+    body = [attitude.inv() for attitude in _truth(times)]
     z = {"sun": np.array([r.apply(SUN) for r in body]) + rng.normal(0, 0.01, (N, 3)),
          "mag": np.array([r.apply(MAG) for r in body]) + rng.normal(0, 0.03, (N, 3))}
     mask = {"sun": np.zeros((N, 3)), "mag": np.ones((N, 3))}
@@ -100,6 +96,32 @@ def test_a_multi_sensor_run_smooths(sun_mag, record):
     result = smooth(f, f.run_multi(times, z, mask=mask, u=gyro))
     filtered, smoothed = np.trace(result.P, axis1=1, axis2=2), np.trace(result.P_smooth, axis1=1, axis2=2)
     assert np.all(smoothed <= filtered * (1 + 1e-9)) and smoothed[100] < 0.7 * filtered[100]
+
+
+def test_the_mekf_smoother_on_the_manifold(sun_mag, record):
+    """The error-state RTS smoother (codegen/families/rts.py on the MEKF's chart): unit
+    quaternions, attitude and gyro-bias errors against the truth below the filter's."""
+    times, z, mask, gyro = record
+    f = sun_mag.filter("mekf", X0, np.eye(6) * 0.01, np.diag([1e-6] * 3 + [1e-8] * 3))
+    result = smooth(f, f.run_multi(times, z, mask=mask, u=gyro))
+    np.testing.assert_allclose(np.linalg.norm(result.x_smooth[:, :4], axis=1), 1.0, atol=1e-12)
+    truth, bias = _truth(times), np.array([0.01, -0.02, 0.005])
+
+    def degrees(x):
+        return np.degrees([(t.inv() * Rotation.from_quat(q)).magnitude() for t, q in zip(truth, x[:, :4])])
+    assert degrees(result.x_smooth).mean() < 0.85 * degrees(result.x).mean()
+    assert np.abs(result.x_smooth[:, 4:] - bias).mean() < 0.5 * np.abs(result.x[:, 4:] - bias).mean()
+    assert np.all(np.trace(result.P_smooth, axis1=1, axis2=2) <= np.trace(result.P, axis1=1, axis2=2) * (1 + 1e-9))
+
+
+def _truth(times):
+    rates = np.stack([0.1 * np.sin(0.3 * times), 0.05 * np.ones(N), -0.08 * np.cos(0.2 * times)], axis=1)
+    attitude, out = Rotation.identity(), []
+    for k in range(N):
+        if k:
+            attitude = attitude * Rotation.from_rotvec(rates[k - 1] * DT)
+        out.append(attitude)
+    return out
 
 
 def test_run_multi_refuses_what_it_cannot_run(sun_mag, record):
