@@ -6,6 +6,9 @@
   recomputes those predictions from the filtered rows instead; both agree to round-off.
 - :func:`ukf_rts`: the unscented RTS smoother (Särkkä 2008) over a run's filtered rows, sigma
   points of (x_k, P_k) propagated over step k + 1.
+- :func:`mekf_rts`: the error-state RTS smoother of the multiplicative EKF over a run's filtered
+  rows, with the NumPy reference's chart and F (runtime/reference/manifold.py):
+  x^s_k = x_k ⊞ G (x^s_{k+1} ⊟ x^-), G = P_k Fᵀ (P^-)^-1.
 
 Both take the run's convention: step k predicts from t[k] over dt[k], then updates; a step whose
 update is skipped (``updated[k]`` False: masked, gated) is a prediction.
@@ -65,5 +68,21 @@ def ukf_rts(ref, x, P, t, dt, u=None) -> tuple[np.ndarray, np.ndarray]:
         D = sum(w * np.outer(pt - x[k], m - x_pred) for w, pt, m in zip(weights, points, moved))
         G = D @ np.linalg.inv(P_pred)
         xs[k] = x[k] + G @ (xs[k + 1] - x_pred)
+        Ps[k] = _sym(P[k] + G @ (Ps[k + 1] - P_pred) @ G.T)
+    return xs, Ps
+
+
+def mekf_rts(ref, x, P, t, dt, u=None) -> tuple[np.ndarray, np.ndarray]:
+    """The MEKF's error-state RTS smoother over filtered (x, P) with the reference ``ref`` (a
+    :class:`ManifoldReference` of family "mekf"): its transition, process noise and chart."""
+    xs, Ps = x.copy(), P.copy()
+    for k in range(len(x) - 2, -1, -1):
+        if u is not None:
+            ref.u = np.asarray(u[k + 1], float)
+        ref.x = x[k]
+        x_pred, F = ref.mekf_transition(t[k + 1], dt[k + 1])
+        P_pred = _sym(F @ P[k] @ F.T + ref.process_noise(t[k + 1], dt[k + 1]))
+        G = cho_solve(cho_factor(P_pred, lower=True), F @ P[k]).T
+        xs[k] = ref.retract(x[k], G @ ref.local(xs[k + 1], x_pred))
         Ps[k] = _sym(P[k] + G @ (Ps[k + 1] - P_pred) @ G.T)
     return xs, Ps
