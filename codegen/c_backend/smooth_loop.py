@@ -76,35 +76,37 @@ def smooth_loop(model: str, kernel: Kernel) -> str:
     call += [f"{a.name}_hist + (long) k * {a.size}" for a in kernel.outputs[:-1] if a.size]
     copies = [(name, FILTERED[i]) for i, name in enumerate(kernel.backward)]
     lines = [f"int {model}_{kernel.name}_run({', '.join(smooth_params(kernel))}) {{",
-             "  int k, i, code, first_error = SYMKF_OK;",
+             "  int k, code, first_error = SYMKF_OK;",
              "  if (n_steps < 0) return SYMKF_ERR_ARGS;",
              "  if (n_steps == 0) return SYMKF_OK;",
              f"  const int fixed_finite = {' && '.join(fixed_terms or ['1'])};",
              "  code = fixed_finite ? SYMKF_OK : SYMKF_ERR_NONFINITE;"]
     for name, source in copies:          # the last row: smoothed = filtered
-        size = sizes[name]
-        lines.append(f"  for (i = 0; i < {size}; ++i) {name}_hist[(long) (n_steps - 1) * {size} + i] = "
-                     f"{source}_hist[(long) (n_steps - 1) * {size} + i];")
+        lines.append(_copy(f"{name}_hist", "n_steps - 1", f"{source}_hist", "n_steps - 1", sizes[name], "  "))
     lines += ["  smooth_status[n_steps - 1] = code;", "  first_error = code;",
               "  for (k = n_steps - 2; k >= 0; --k) {",
               "    if (status_hist[k + 1] != SYMKF_OK && status_hist[k + 1] != SYMKF_GATED) {"
               "   /* row k + 1 is row k */"]
     for name, _ in copies:
-        size = sizes[name]
-        lines.append(f"      for (i = 0; i < {size}; ++i) {name}_hist[(long) k * {size} + i] = "
-                     f"{name}_hist[(long) (k + 1) * {size} + i];")
+        lines.append(_copy(f"{name}_hist", "k", f"{name}_hist", "k + 1", sizes[name], "      "))
     lines += ["      code = SYMKF_OK;", "    } else {", "      code = SYMKF_ERR_NONFINITE;",
               f"      if (fixed_finite && {' && '.join(step_terms or ['1'])})",
               f"        code = {model}_{kernel.name}_eval_into({', '.join(call)});",
               "    }",
               "    if (code != SYMKF_OK) {           /* the filtered row k */"]
     for name, source in copies:
-        size = sizes[name]
-        lines.append(f"      for (i = 0; i < {size}; ++i) {name}_hist[(long) k * {size} + i] = "
-                     f"{source}_hist[(long) k * {size} + i];")
+        lines.append(_copy(f"{name}_hist", "k", f"{source}_hist", "k", sizes[name], "      "))
     lines += ["      if (first_error == SYMKF_OK) first_error = code;", "    }",
               "    smooth_status[k] = code;", "  }", "  return first_error;", "}", ""]
     return "\n".join(lines)
+
+
+def _copy(target: str, target_row: str, source: str, source_row: str, size: int, indent: str) -> str:
+    """Row ``source_row`` of ``source`` into row ``target_row`` of ``target`` with memcpy: rows
+    never overlap, and a loop copying within one array would become a call of memmove, which the
+    bundle does not use (it needs only libm, memcpy and memset)."""
+    return (f"{indent}memcpy({target} + (long) ({target_row}) * {size}, {source} + (long) ({source_row}) * {size}, "
+            f"{size} * sizeof(casadi_real));")
 
 
 def smooth_doc(model: str, kernel: Kernel) -> list[str]:
