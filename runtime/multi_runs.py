@@ -34,6 +34,17 @@ class MultiRunResult(RunResult):
     update_status: dict = field(default_factory=dict)
     present: dict = field(default_factory=dict)
 
+    def _innovation(self, key: str):
+        """By measurement: computed on first use from each one's histories (NaN where absent)."""
+        if "_innovations" not in self.__dict__:
+            by = {}
+            for m, raw in self.innovations.items():
+                codes = np.where(self.present[m], self.update_status[m], -1)       # absent: no innovation
+                by[m] = innovations.of_run(raw["kept"], raw["mask"], codes)
+            self.__dict__["_innovations"] = {k: {m: v.get(k) for m, v in by.items()}
+                                             for k in ("y", "S", "nis", "nis_dof")}
+        return self.__dict__["_innovations"].get(key)
+
 
 def run_multi(filt, times, z: dict, q: dict | None = None, mask: dict | None = None, u=None,
               nan: str = "raise") -> MultiRunResult:
@@ -174,15 +185,10 @@ def _result(filt, arguments, arrays, per_step: dict, records: dict) -> MultiRunR
     names = list(spec.update)
     present = {m: np.any(records[m]["mask"].reshape(n_steps, -1) > 0.5, axis=1) & (status[:, 0] == STATUS_OK)
                for m in names}
-    consistency = {}
-    for j, m in enumerate(names):
-        kept = {n: arrays[f"{n}_{m}_hist"] for n in ("y", "S") if f"{n}_{m}_hist" in arrays}
-        update = status[:, j + 1].copy()
-        update[~present[m] & (update == STATUS_OK)] = -1          # absent: no innovation
-        consistency[m] = innovations.of_run(kept, records[m]["mask"], np.where(update == -1, -1, update))
-    fields_by = {key: {m: consistency[m].get(key) for m in names} for key in ("y", "S", "nis", "nis_dof")}
+    raw = {m: {"kept": {n: arrays[f"{n}_{m}_hist"] for n in ("y", "S") if f"{n}_{m}_hist" in arrays},
+               "mask": records[m]["mask"]} for m in names}
     inputs = {c: arrays[c].copy() for c, n, m, kind, _ in arguments if m is None and kind in ("per_step", "value", "array")}
     inputs.update({n: np.array(filt._buffers[n]) for n in ("p", "Q", "kappa") if n in filt._buffers})
     inputs["t"], inputs["dt"] = per_step["t"], per_step["dt"]
-    return MultiRunResult(np.asarray(x, float), np.asarray(P, float), status[:, 0].copy(), inputs, **fields_by,
+    return MultiRunResult(np.asarray(x, float), np.asarray(P, float), status[:, 0].copy(), inputs, raw,
                           update_status={m: status[:, j + 1].copy() for j, m in enumerate(names)}, present=present)

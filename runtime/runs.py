@@ -23,13 +23,35 @@ class RunResult:
     #: The run's per-step t, dt (and u) and the constants its kernel read, by argument name, as the
     #: kernels take them: what a smoother needs (runtime/smoothing.py).
     inputs: dict = field(default_factory=dict, repr=False)
-    #: Each step's innovation y (N, m), its covariance S (N, m, m) and the normalised innovation
-    #: squared y^T S^-1 y (N,) with its degrees of freedom (N,): runtime/innovations.py. NaN for
-    #: a step that failed; None for a filter whose run keeps no innovations.
-    y: np.ndarray | None = field(default=None, repr=False)
-    S: np.ndarray | None = field(default=None, repr=False)
-    nis: np.ndarray | None = field(default=None, repr=False)
-    nis_dof: np.ndarray | None = field(default=None, repr=False)
+    #: The run loop's y and S histories and the run's mask, as kept (read through y, S, nis, nis_dof).
+    innovations: dict = field(default_factory=dict, repr=False)
+
+    @property
+    def y(self):
+        """Each step's innovation (N, m); NaN for a failed step; None if the run kept none."""
+        return self._innovation("y")
+
+    @property
+    def S(self):
+        """Each step's innovation covariance (N, m, m)."""
+        return self._innovation("S")
+
+    @property
+    def nis(self):
+        """Each step's normalised innovation squared y^T S^-1 y (N,): runtime/innovations.py."""
+        return self._innovation("nis")
+
+    @property
+    def nis_dof(self):
+        """The degrees of freedom of each step's NIS (the measurement components it used)."""
+        return self._innovation("nis_dof")
+
+    def _innovation(self, key: str):
+        """Computed on first use (a run that never reads them pays only the loop's y, S rows)."""
+        if "_innovations" not in self.__dict__:
+            self.__dict__["_innovations"] = innovations.of_run(self.innovations.get("kept", {}),
+                                                               self.innovations.get("mask"), self.status)
+        return self.__dict__["_innovations"].get(key)
 
     @property
     def failed_steps(self) -> np.ndarray:
@@ -143,7 +165,7 @@ def run(filt, name: str, per_step: dict, given: dict, u, nan: str) -> RunResult:
     inputs = {n: a.copy() for (n, _), a in zip(info.inputs, arrays)
               if n not in filt.spec.state and (n in ("t", "dt", "u") or n not in info.per_step)}
     return RunResult(np.asarray(x, dtype=float), None if P is None else np.asarray(P, dtype=float), status, inputs,
-                     **innovations.of_run(kept, per_step.get("mask"), status))
+                     {"kept": kept, "mask": per_step.get("mask")})
 
 
 def _run_in_python(filt, kernel, info, arrays, histories, status) -> None:

@@ -151,5 +151,7 @@ def _result(filt, result: RunResult, xs: np.ndarray, Ps: np.ndarray, codes: np.n
     if filt._scaling is not None:
         xs, P_smooth = filt._scaling.x_from_kernel(xs), filt._scaling.P_from_kernel(P_smooth)
     forward = {f.name: getattr(result, f.name) for f in fields(RunResult)}
-    return SmoothedRun(**forward, x_smooth=np.asarray(xs, dtype=float), P_smooth=np.asarray(P_smooth, dtype=float),
-                       smooth_status=codes)
+    smoothed = SmoothedRun(**forward, x_smooth=np.asarray(xs, dtype=float), P_smooth=np.asarray(P_smooth, dtype=float),
+                           smooth_status=codes)
+    smoothed.__dict__["_innovations"] = {k: getattr(result, k) for k in ("y", "S", "nis", "nis_dof")}   # as the run's
+    return smoothed
