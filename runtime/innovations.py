@@ -13,6 +13,38 @@ import numpy as np
 from symkf.codegen.spec import STATUS_GATED, STATUS_OK
 
 
+class Innovations:
+    """y, S, nis and nis_dof of a run (:class:`~symkf.runtime.runs.RunResult`), computed on first
+    use from its ``innovations`` (the run loop's histories) and ``status``: a run that never reads
+    them pays only the loop's y and S rows."""
+
+    @property
+    def y(self):
+        """Each step's innovation (N, m); NaN for a failed step; None if the run kept none."""
+        return self._innovation("y")
+
+    @property
+    def S(self):
+        """Each step's innovation covariance (N, m, m)."""
+        return self._innovation("S")
+
+    @property
+    def nis(self):
+        """Each step's normalised innovation squared y^T S^-1 y (N,)."""
+        return self._innovation("nis")
+
+    @property
+    def nis_dof(self):
+        """The degrees of freedom of each step's NIS (the measurement components it used)."""
+        return self._innovation("nis_dof")
+
+    def _innovation(self, key: str):
+        if "_innovations" not in self.__dict__:
+            self.__dict__["_innovations"] = of_run(self.innovations.get("kept", {}), self.innovations.get("mask"),
+                                                   self.status)
+        return self.__dict__["_innovations"].get(key)
+
+
 def of_run(kept: dict[str, np.ndarray], mask: np.ndarray | None, status: np.ndarray) -> dict:
     """RunResult's y, S, nis and nis_dof from a run loop's histories ``kept`` (y rows, S rows
     column-major), the run's per-step ``mask`` and ``status``; {} if the loop kept no y and S."""

@@ -14,7 +14,7 @@ from .buffers import buffer, fits
 
 
 @dataclass
-class RunResult:
+class RunResult(innovations.Innovations):
     """A whole run: the state (and covariance) after every step and each step's status code."""
 
     x: np.ndarray                  # (N, n)
@@ -23,35 +23,9 @@ class RunResult:
     #: The run's per-step t, dt (and u) and the constants its kernel read, by argument name, as the
     #: kernels take them: what a smoother needs (runtime/smoothing.py).
     inputs: dict = field(default_factory=dict, repr=False)
-    #: The run loop's y and S histories and the run's mask, as kept (read through y, S, nis, nis_dof).
+    #: The run loop's y and S histories and the run's mask, as kept (read through the properties
+    #: y, S, nis, nis_dof of :class:`~symkf.runtime.innovations.Innovations`).
     innovations: dict = field(default_factory=dict, repr=False)
-
-    @property
-    def y(self):
-        """Each step's innovation (N, m); NaN for a failed step; None if the run kept none."""
-        return self._innovation("y")
-
-    @property
-    def S(self):
-        """Each step's innovation covariance (N, m, m)."""
-        return self._innovation("S")
-
-    @property
-    def nis(self):
-        """Each step's normalised innovation squared y^T S^-1 y (N,): runtime/innovations.py."""
-        return self._innovation("nis")
-
-    @property
-    def nis_dof(self):
-        """The degrees of freedom of each step's NIS (the measurement components it used)."""
-        return self._innovation("nis_dof")
-
-    def _innovation(self, key: str):
-        """Computed on first use (a run that never reads them pays only the loop's y, S rows)."""
-        if "_innovations" not in self.__dict__:
-            self.__dict__["_innovations"] = innovations.of_run(self.innovations.get("kept", {}),
-                                                               self.innovations.get("mask"), self.status)
-        return self.__dict__["_innovations"].get(key)
 
     @property
     def failed_steps(self) -> np.ndarray:
