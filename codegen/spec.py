@@ -71,6 +71,9 @@ class Kernel:
             called (in a run: a fixed input's once per run, a per-step input's at each step). Each
             is this kernel with those entries replaced by the constant 0, which CasADi folds away
             (e.g. a masked component's scalar update, a gate that is off): the same outputs.
+        backward: for a smoother's backward step (codegen/families/rts.py), the outputs that feed
+            back into the same-named inputs of the step before it (``("xs", "Ps")``): the C backend
+            generates a backward ``_run`` loop over a forward run's histories for it.
     """
 
     name: str
@@ -83,6 +86,7 @@ class Kernel:
     parts: tuple[str, ...] = ()
     trusted: str = ""
     variants: tuple = ()
+    backward: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         f = self.function
@@ -121,6 +125,7 @@ class Kernel:
                 "outputs": [a.as_dict() for a in self.outputs],
                 "carried": list(self.carried), "per_step": list(self.per_step), "trusted": self.trusted,
                 "ignores": self.ignores(),
+                "backward": list(self.backward),
                 "work": {"arg": f.sz_arg(), "res": f.sz_res(), "iw": f.sz_iw(), "w": f.sz_w()},
                 "instructions": f.n_instructions()}
 
@@ -294,6 +299,8 @@ class FilterSpec:
         defaults: default values of scalar inputs (e.g. ``{"kappa": 0.0}``).
         covariance: what the carried ``P`` holds: "full" (the covariance) or "cholesky" (its lower
             Cholesky factor L, P = L L^T: the square-root families; the runtime converts).
+        smooth: the kernel of the fixed-interval (RTS) smoother's backward step ("" if the
+            filter has none): its ``_run`` loop smooths a forward run's histories.
     """
 
     name: str
@@ -307,6 +314,7 @@ class FilterSpec:
     defaults: dict[str, float] = field(default_factory=dict)
     run: dict[str, str] = field(default_factory=dict)
     covariance: str = "full"
+    smooth: str = ""
 
     @property
     def measurements(self) -> tuple[str, ...]:
@@ -320,14 +328,14 @@ class FilterSpec:
                 "update": dict(self.update), "step": dict(self.step), "state": list(self.state),
                 "diagnostics": list(self.diagnostics), "measurement_inputs": list(self.measurement_inputs),
                 "defaults": dict(self.defaults), "run": dict(self.run),
-                "covariance": self.covariance}
+                "covariance": self.covariance, "smooth": self.smooth}
 
     @classmethod
     def from_dict(cls, entry: dict) -> "FilterSpec":
         return cls(entry["name"], entry["algorithm"], entry["predict"], dict(entry["update"]),
                    dict(entry["step"]), tuple(entry["state"]), tuple(entry["diagnostics"]),
                    tuple(entry["measurement_inputs"]), dict(entry["defaults"]), dict(entry.get("run", {})),
-                   entry.get("covariance", "full"))
+                   entry.get("covariance", "full"), entry.get("smooth", ""))
 
 
 @dataclass

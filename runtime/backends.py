@@ -64,6 +64,13 @@ class KernelInfo:
                    tuple((a.name, a.shape) for a in kernel.outputs), kernel.carried, kernel.per_step, kernel.trusted,
                    tuple(kernel.ignores()))
 
+    @property
+    def diagnosed(self) -> tuple[str, ...]:
+        """Outputs a run loop's ``_run_diag`` keeps per step besides the state (codegen/c_backend/arguments.py)."""
+        if not self.carried:
+            return ()
+        return tuple(n for n, shape in self.outputs[:-1] if n not in self.carried and shape[0] * shape[1])
+
     def pointer_names(self) -> list[tuple[str, bool]]:
         """(buffer name, is_output) in the C argument order (status excluded)."""
         return [(n, False) for n, _ in self.inputs] + [(n, True) for n, _ in self.outputs[:-1]]
@@ -158,19 +165,22 @@ class CompiledBackend:
         return BoundCall(kernel, function, ctypes.byref(pointers), keep_alive=(pointers, buffers),
                          c_address=ctypes.cast(function, ctypes.c_void_p).value, c_args=ctypes.addressof(pointers))
 
-    def run_function(self, kernel: str):
-        """``<model>_<kernel>_run`` as ``run(n_steps, *input_addresses, *hist_addresses, status_address)``.
+    def run_function(self, kernel: str, diagnostics: bool = False):
+        """``<model>_<kernel>_run`` as ``run(n_steps, *input_addresses, *hist_addresses, status_address)``
+        (``diagnostics``: ``_run_diag``, whose histories are the state's, then those of
+        :attr:`KernelInfo.diagnosed`).
 
         The C signature passes constant scalars (kappa) by value and leaves zero-size inputs out
         (:func:`symkf.codegen.c_backend.api.passing`); this adapter takes every input's buffer address,
         in manifest order, and passes each the way the C function expects it.
         """
         info = self.kernels[kernel]
-        function = getattr(self.lib, f"{self.model}_{kernel}_run")
+        function = getattr(self.lib, f"{self.model}_{kernel}_run" + ("_diag" if diagnostics else ""))
         how = [run_passing(name, shape, info) for name, shape in info.inputs]
+        histories = len(info.carried) + (len(info.diagnosed) if diagnostics else 0)
         function.argtypes = ([ctypes.c_int] + [self._scalar if h == "value" else ctypes.c_void_p
                                                for h in how if h != "omit"]
-                             + [ctypes.c_void_p] * (len(info.carried) + 1))
+                             + [ctypes.c_void_p] * (histories + 1))
         function.restype = ctypes.c_int
 
         def run(n_steps: int, *addresses: int) -> int:
@@ -256,7 +266,7 @@ class VirtualMachineBackend:
 
         return BoundCall(kernel, evaluate)
 
-    def run_function(self, kernel: str):
+    def run_function(self, kernel: str, diagnostics: bool = False):
         return None
 
 

@@ -23,7 +23,7 @@ from copy import deepcopy
 import numpy as np
 
 from symkf.codegen.spec import FilterSpec
-from . import calls, contract, runs
+from . import calls, contract, multi_runs, runs, smoothing
 from .buffers import fits, kernel_roles, make_buffers
 from .contract import DEFAULT_GATE_PROBABILITY, read_only
 from .covariance_form import CholeskyForm
@@ -237,7 +237,7 @@ class Filter(FilterState):
 
     # ------------------------------------------------------------------ whole runs
     def run(self, times, z, measurement: str | None = None, q=None, mask=None, u=None,
-            nan: str = "raise", refused: str = "raise") -> RunResult:
+            nan: str = "raise", refused: str = "raise", smooth: bool = False) -> RunResult:
         """Filter a whole record in one compiled call: step k predicts from times[k-1] to times[k]
         (step 0 from the filter's time, dt = 0 if times[0] is that time) and updates with z[k].
         The filter's x, P and t end at the last step.
@@ -251,6 +251,8 @@ class Filter(FilterState):
                 the state while time went on), raise :class:`~symkf.runtime.runs.RunRefused` with
                 the run's result attached and leave the filter as it was; "continue": return the
                 result, whose ``refused_steps`` and ``counts`` (shown by its repr) say which.
+            smooth: also smooth the run (fixed-interval, :func:`symkf.runtime.smoothing.smooth`):
+                a SmoothedRun with ``x_smooth``, ``P_smooth`` beside the filtered x, P.
         """
         name = calls.measurement_name(self, measurement, "step", "run")
         times = contract.run_times(times)
@@ -259,13 +261,21 @@ class Filter(FilterState):
             start = contract.on_clock(times[0], start, 0.0, "run (its first time)")   # dt = 0: an update first
         per_step = {"t": np.concatenate([[start], times[:-1]]), "dt": np.diff(times, prepend=start)}
         runs.warn_long_first_step(self, times, per_step["dt"])
-        return runs.run(self, name, per_step, {"z": z, "q": q, "mask": mask}, u, nan, refused)
+        result = runs.run(self, name, per_step, {"z": z, "q": q, "mask": mask}, u, nan, refused)
+        return smoothing.smooth(self, result) if smooth else result
+
+    def run_multi(self, times, z: dict, q: dict | None = None, mask: dict | None = None, u=None,
+                  nan: str = "raise", refused: str = "raise"):
+        """:meth:`run` over a record of several measurements ({name: array}), in one compiled call:
+        :func:`symkf.runtime.multi_runs.run_multi`."""
+        return multi_runs.run_multi(self, times, z, q, mask, u, nan, refused)
 
     def run_steps(self, dt, z, measurement: str | None = None, q=None, mask=None, u=None,
-                  nan: str = "raise", refused: str = "raise") -> RunResult:
+                  nan: str = "raise", refused: str = "raise", smooth: bool = False) -> RunResult:
         """:meth:`run` given step lengths from the filter's time: step k predicts over dt[k] (> 0;
         the first may be 0) and updates with z[k]; arguments as :meth:`run`."""
         name = calls.measurement_name(self, measurement, "step", "run_steps")
         dt = contract.run_steps(dt)
         per_step = {"t": self.t + np.concatenate([[0.0], np.cumsum(dt)])[:-1], "dt": dt}
-        return runs.run(self, name, per_step, {"z": z, "q": q, "mask": mask}, u, nan, refused)
+        result = runs.run(self, name, per_step, {"z": z, "q": q, "mask": mask}, u, nan, refused)
+        return smoothing.smooth(self, result) if smooth else result

@@ -5,12 +5,12 @@ step) and its :class:`RunResult`."""
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from symkf.codegen.spec import STATUS_CODES, STATUS_GATED
-from . import calls, contract, precision
+from . import calls, contract, innovations, precision
 from .backends import SymkfError
 from .buffers import buffer, fits
 
@@ -20,13 +20,19 @@ REFUSED_POLICIES = ("raise", "continue")
 
 
 @dataclass
-class RunResult:
+class RunResult(innovations.Innovations):
     """A whole run: the state (and covariance) after every step and each step's status code.
     ``refused_steps`` / ``counts`` say which steps failed and how; ``repr`` shows them."""
 
     x: np.ndarray                  # (N, n)
     P: np.ndarray | None           # (N, n, n), None for a filter without covariance
     status: np.ndarray             # (N,) int: 0, SYMKF_GATED or a SYMKF_ERR_* code
+    #: The run's per-step t, dt (and u) and the constants its kernel read, by argument name, as the
+    #: kernels take them: what a smoother needs (runtime/smoothing.py).
+    inputs: dict = field(default_factory=dict, repr=False)
+    #: The run loop's y and S histories and the run's mask, as kept (read through the properties
+    #: y, S, nis, nis_dof of :class:`~symkf.runtime.innovations.Innovations`).
+    innovations: dict = field(default_factory=dict, repr=False)
 
     def __repr__(self) -> str:
         shape = f"{self.x.shape[0]} steps x {self.x.shape[1]} states"
@@ -50,6 +56,10 @@ class RunResult:
     def failed_steps(self) -> np.ndarray:
         """The same as :attr:`refused_steps`."""
         return self.refused_steps
+
+    def refused_codes(self) -> np.ndarray:
+        """The SYMKF_ERR_* code of each refused step."""
+        return self.status[self.refused_steps]
 
     @property
     def gated_steps(self) -> int:
@@ -131,7 +141,7 @@ class RunRefused(SymkfError):
 
     def __init__(self, what: str, result: RunResult):
         self.result, self.steps = result, result.refused_steps
-        self.codes = result.status[self.steps]
+        self.codes = result.refused_codes()
         first = int(self.steps[0])
         counts = ", ".join(f"{n}: {c}" for n, c in result.counts.items() if n != "SYMKF_GATED")
         detail = (f"{self.steps.size} of {result.status.size} steps refused ({counts}), the first at step {first}; "
@@ -164,8 +174,12 @@ def run(filt, name: str, per_step: dict, given: dict, u, nan: str, refused: str 
     n_steps = per_step["dt"].size
     per_step.update(series(filt, name, n_steps, given, u, nan))
     kernel = filt.spec.run.get(name, filt.spec.step[name])
-    histories, status = _loop(filt, kernel, name, per_step, n_steps)
+    histories, status, kept, arrays = _loop(filt, kernel, name, per_step, n_steps)
     result = _result(filt, histories, status)
+    info = filt._backend.kernels[kernel]
+    result.inputs = {n: a.copy() for (n, _), a in zip(info.inputs, arrays)
+                     if n not in filt.spec.state and (n in ("t", "dt", "u") or n not in info.per_step)}
+    result.innovations = {"kept": kept, "mask": per_step.get("mask")}
     if result.gated_steps and name in filt._default_gates:
         warnings.warn(f"{filt.family} run '{name}': {result.gated_steps} of {n_steps} updates refused by the default "
                       f"innovation gate (chi-square probability {contract.DEFAULT_GATE_PROBABILITY!r}); set "
@@ -185,7 +199,8 @@ def run(filt, name: str, per_step: dict, given: dict, u, nan: str, refused: str 
 
 
 def _loop(filt, kernel: str, name: str, per_step: dict, n_steps: int):
-    """The run loop over checked per-step arrays: histories of the carried state and the status."""
+    """The run loop over checked per-step arrays: histories of the carried state, the status, the
+    diagnostics y, S the loop kept (a filter that has them) and the kernel's input arrays."""
     info = filt._backend.kernels[kernel]
     constants = filt._measurement_buffers(name)
     dtype = filt._dtype
@@ -194,15 +209,16 @@ def _loop(filt, kernel: str, name: str, per_step: dict, n_steps: int):
     arrays = [np.ascontiguousarray(per_step[n], dtype=dtype) if n in info.per_step
               else np.asfortranarray(constants[n], dtype=dtype) for n, _ in info.inputs]
     histories = {n: np.zeros((n_steps,) + filt._buffers[n].shape[::-1], dtype) for n in filt.spec.state}
+    kept = {n: np.zeros((n_steps,) + buffer(shape).shape[::-1], dtype) for n, shape in info.outputs if n in info.diagnosed}
     status = np.zeros(n_steps, dtype=np.intc)
     filt._fast.before_write()
-    loop = filt._backend.run_function(kernel)
+    loop = filt._backend.run_function(kernel, diagnostics=bool(kept))
     if loop is not None:
         loop(n_steps, *[a.ctypes.data for a in arrays], *[histories[n].ctypes.data for n in filt.spec.state],
-             status.ctypes.data)
+             *[a.ctypes.data for a in kept.values()], status.ctypes.data)
     else:
-        _run_in_python(filt, kernel, info, arrays, histories, status)
-    return histories, status
+        _run_in_python(filt, kernel, info, arrays, {**histories, **kept}, status)
+    return histories, status, kept, arrays
 
 
 def _result(filt, histories: dict, status: np.ndarray) -> RunResult:

@@ -163,7 +163,7 @@ def main(argv: list[str] | None = None) -> int:
     families = sub.add_parser("families", help="list the filter families and what x0, P0 and Q mean for each")
     families.set_defaults(handler=lambda a: print(cli_reference.families_text()))
     plot = sub.add_parser("plot", help="redraw the figures of a saved launcher comparison (no filter is run)",
-                          description="Redraw fig_velocity_rms.png, fig_radius_rms.png and fig_nees.png from the "
+                          description="Redraw fig_velocity_rms.png, fig_radius_rms.png, fig_nees.png and fig_smoother_rms.png from the "
                                       "series.npz that `symkf compare launcher` saved in FOLDER.")
     plot.add_argument("folder", type=Path, help="a folder written by symkf compare launcher (e.g. results/launcher)")
     plot.add_argument("--out", type=Path, help="where to write the figures (default: FOLDER)")

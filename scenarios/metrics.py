@@ -1,5 +1,5 @@
 """Monte Carlo metrics: RMS error per time (paper 004 eq (8)), its whole-flight mean (eq (11)),
-and the normalised estimation error squared (NEES) with its chi-square consistency band.
+and the normalised estimation error squared (NEES); its chi-square bands are in consistency.py.
 
 Every metric starts from :func:`state_error`, which wraps angle components to (-pi, pi]: an
 estimate 360 deg off in a flight-path angle has *converged*, and its error is 0, not 2 pi.
@@ -11,7 +11,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.stats import chi2
 
 from symkf.runtime.reference import wrap_angle
 
@@ -82,10 +81,3 @@ def nees(error: np.ndarray, covariance: np.ndarray) -> np.ndarray:
 def whole_flight_mean(rms: np.ndarray) -> np.ndarray:
     """Eq (11): a_i = (1/k) sum_j epsilon_i(j), the mean of the RMS over all observation times."""
     return rms.mean(axis=0)
-
-
-def nees_band(n_states: int, runs: int, probability: float = 0.95) -> tuple[float, float]:
-    """Two-sided band for the run-averaged NEES of a consistent filter: chi2(runs * n) / runs."""
-    tail = (1 - probability) / 2
-    dof = runs * n_states
-    return chi2.ppf(tail, dof) / runs, chi2.ppf(1 - tail, dof) / runs

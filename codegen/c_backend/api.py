@@ -10,20 +10,12 @@ from __future__ import annotations
 import casadi as ca
 
 from ..spec import Arg, Bundle, Kernel
+from .arguments import diagnosed, finite_terms, passing, sanitised_z
 from .casadi_text import math_block
 from .names import ascii_text, generated_notice, public_names, raw_name
+from .multi_loop import multi_filters, multi_loop
+from .smooth_loop import smooth_loop
 from .template_util import template_text
-
-
-def passing(arg: Arg, kernel: Kernel, run: bool = False) -> str:
-    """How an input is passed in the public C signature: 'omit' (zero-size), 'value' (a scalar)
-    or 'pointer'. In a ``_run`` loop, carried and per-step inputs are always pointers (arrays of
-    initial values or of n_steps blocks)."""
-    if arg.size == 0:
-        return "omit"
-    if run and (arg.name in kernel.carried or arg.name in kernel.per_step):
-        return "pointer"
-    return "value" if arg.size == 1 else "pointer"
 
 
 def param_list(kernel: Kernel) -> list[str]:
@@ -38,12 +30,6 @@ def param_list(kernel: Kernel) -> list[str]:
     return params or ["void"]
 
 
-def _sanitised_z(kernel: Kernel) -> bool:
-    """True if the kernel has a measurement z with one mask entry per component."""
-    sizes = {a.name: a.size for a in kernel.inputs}
-    return sizes.get("z", 0) > 0 and sizes.get("mask") == sizes["z"]
-
-
 #: The API unit's finiteness test of an array, exact and on the bits (no floating-point operation,
 #: so no floating-point exception; one OR per entry and one test per array instead of a compare
 #: and a branch per entry: compilers vectorise it). A double is NaN or infinite exactly when its
@@ -52,22 +38,15 @@ def _sanitised_z(kernel: Kernel) -> bool:
 FINITE_HELPER = template_text("finite.c") + "\n"
 
 
-def _finite_terms(kernel: Kernel, names, where) -> list[str]:
-    """``symkf_finite(...)`` of the named inputs (a sanitised z excluded: it is tested after masking);
-    ``where(a)`` is the C expression of input ``a``'s first element's address."""
-    return [f"symkf_finite({where(a)}, {a.size})" for a in kernel.inputs
-            if a.name in names and passing(a, kernel) != "omit" and not (a.name == "z" and _sanitised_z(kernel))]
-
-
 def _checks(kernel: Kernel, inputs_finite: bool = True) -> list[str]:
     """Refuse NaN/Inf inputs before any arithmetic (a comparison with NaN inside the kernel would
     raise FE_INVALID). A masked component of z may be NaN: it is replaced by 0 in a copy (z_used),
     so it enters no arithmetic, and the used components are tested there. ``inputs_finite``
     False: the inputs are the caller's to test (an ``_unchecked`` entry), z_used is still made."""
-    terms = _finite_terms(kernel, [a.name for a in kernel.inputs],
+    terms = finite_terms(kernel, [a.name for a in kernel.inputs],
                           lambda a: f"&{a.name}" if passing(a, kernel) == "value" else a.name)
     lines = [f"  if (!({' && '.join(terms or ['1'])})) return SYMKF_ERR_NONFINITE;"] if inputs_finite else []
-    if _sanitised_z(kernel):
+    if sanitised_z(kernel):
         size = next(a.size for a in kernel.inputs if a.name == "z")
         index = "[i]" if size > 1 else ""           # a one-component z and mask come by value
         lines = [f"  casadi_real z_used[{size}];", "  int i;"] + lines
@@ -147,7 +126,7 @@ def _wrapper(model: str, kernel: Kernel, unchecked: bool = False) -> str:
     variants whose zero entries are all 0) and its binding entry ``_v``; ``unchecked``: the same
     without the inputs' finiteness test, ``<kernel>_unchecked`` (static) and its ``_unchecked_v``
     (the entry of a run's trusted kernel that the Python runtime calls: :func:`public_functions`)."""
-    sanitised = _sanitised_z(kernel)
+    sanitised = sanitised_z(kernel)
     entry = f"{model}_{kernel.name}" + ("_unchecked" if unchecked else "")
     arguments = "(" + ", ".join(_call_list(kernel, lambda a: _z_used(kernel) if sanitised and a.name == "z" else a.name)) + ");"
     lines = [f"{'static ' if unchecked else ''}int {entry}({', '.join(param_list(kernel))}) {{",
@@ -173,7 +152,9 @@ def trusted_kernels(bundle: Bundle) -> list[Kernel]:
     return [k for k in bundle.kernels if k.name in names]
 
 
-def run_params(kernel: Kernel) -> list[str]:
+def run_params(kernel: Kernel, diagnostics: bool = False) -> list[str]:
+    """The parameters of ``<kernel>_run`` (``diagnostics``: of ``<kernel>_run_diag``, which also
+    takes a history of each of :func:`diagnosed`'s outputs)."""
     params = ["int n_steps"]
     for a in kernel.inputs:
         how = passing(a, kernel, run=True)
@@ -188,6 +169,7 @@ def run_params(kernel: Kernel) -> list[str]:
         else:
             params.append(f"const casadi_real {a.name}[{a.size}]")
     params += [f"casadi_real *{name}_hist" for name in kernel.carried]
+    params += [f"casadi_real *{a.name}_hist" for a in diagnosed(kernel)] if diagnostics else []
     params += ["int *status_hist"]
     return params
 
@@ -211,8 +193,10 @@ def _run_address(a: Arg, kernel: Kernel) -> str:
     return f"&{a.name}" if passing(a, kernel) == "value" else a.name
 
 
-def _run_loop(model: str, kernel: Kernel, kernels: dict[str, Kernel]) -> str:
+def _run_loop(model: str, kernel: Kernel, kernels: dict[str, Kernel], diagnostics: bool = False) -> str:
     """``<kernel>_run``: the filter's time loop; a failed step keeps the state and records its code.
+    ``diagnostics``: ``<kernel>_run_diag``, the same loop writing step k's y and S (:func:`diagnosed`)
+    into row k of their histories (a failed step's row is unspecified).
 
     The inputs that do not change along the run (parameters, noise, the initial state) are checked
     once, the per-step ones (t, dt, z, ...) at each step: a state a step returns is finite (checked
@@ -221,21 +205,22 @@ def _run_loop(model: str, kernel: Kernel, kernels: dict[str, Kernel]) -> str:
     input; a failed step's row is the state it was given. Once a step has succeeded, the loop
     calls the kernel's ``trusted`` partner, if it has one (:class:`~symkf.codegen.spec.Kernel`)."""
     outputs = {a.name: a for a in kernel.outputs}
-    sanitised = _sanitised_z(kernel)
+    sanitised = sanitised_z(kernel)
     trusted = kernels[kernel.trusted] if kernel.trusted else None
-    lines = [f"int {model}_{kernel.name}_run({', '.join(run_params(kernel))}) {{"]
+    suffix, kept = ("_run_diag", {a.name for a in diagnosed(kernel)}) if diagnostics else ("_run", set())
+    lines = [f"int {model}_{kernel.name}{suffix}({', '.join(run_params(kernel, diagnostics))}) {{"]
     for name in kernel.carried:     # a copy: the caller's x0 may be a row of its own x_hist
         lines.append(f"  casadi_real {name}_first[{max(outputs[name].size, 1)}];")
         lines.append(f"  const casadi_real *{name} = {name}_first;")
     for a in kernel.outputs[:-1]:
-        if a.name not in kernel.carried and a.size:
+        if a.name not in kernel.carried and a.size and a.name not in kept:
             lines.append(f"  casadi_real {a.name}_scratch[{a.size}];")
     if sanitised:
         lines.append(f"  casadi_real z_used[{next(a.size for a in kernel.inputs if a.name == 'z')}];")
     fixed = [a.name for a in kernel.inputs if a.name not in kernel.per_step]
     per_step = [a.name for a in kernel.inputs if a.name in kernel.per_step]
-    fixed_terms = _finite_terms(kernel, fixed, lambda a: _run_address(a, kernel)) or ["1"]
-    step_terms = _finite_terms(kernel, per_step, lambda a: _run_address(a, kernel)) or ["1"]
+    fixed_terms = finite_terms(kernel, fixed, lambda a: _run_address(a, kernel)) or ["1"]
+    step_terms = finite_terms(kernel, per_step, lambda a: _run_address(a, kernel)) or ["1"]
     lines += ["  int k, i, code, own = 0, first_error = SYMKF_OK;",
               "  if (n_steps < 0) return SYMKF_ERR_ARGS;",
               f"  const int fixed_finite = {' && '.join(fixed_terms)};"]
@@ -256,7 +241,8 @@ def _run_loop(model: str, kernel: Kernel, kernels: dict[str, Kernel]) -> str:
             return _z_used(kernel)
         return a.name if a.name in kernel.carried else _step_argument(a, kernel)
     call = [argument(a) for a in kernel.inputs if passing(a, kernel) != "omit"]
-    call += [f"{a.name}_at" if a.name in kernel.carried else f"{a.name}_scratch" for a in kernel.outputs[:-1] if a.size]
+    call += [f"{a.name}_at" if a.name in kernel.carried else f"{a.name}_hist + (long) k * {a.size}" if a.name in kept
+             else f"{a.name}_scratch" for a in kernel.outputs[:-1] if a.size]
     calls = _run_calls(model, kernel, trusted, f"({', '.join(call)});")
     if sanitised:
         size = next(a.size for a in kernel.inputs if a.name == "z")
@@ -322,11 +308,14 @@ def api_unit(bundle: Bundle) -> str:
     functions = [FINITE_HELPER]
     for kernel in bundle.kernels:
         functions.append(_eval(model, kernel, by_name))
-        if kernel.runnable or kernel.name in trusted:
+        if kernel.runnable or kernel.backward or kernel.name in trusted:
             functions.append(_eval(model, kernel, by_name, into=True))
     functions += [_wrapper(model, kernel) for kernel in bundle.kernels]
     functions += [_wrapper(model, kernel, unchecked=True) for kernel in trusted_kernels(bundle)]
     functions += [_run_loop(model, kernel, by_name) for kernel in bundle.kernels if kernel.runnable]
+    functions += [_run_loop(model, kernel, by_name, diagnostics=True) for kernel in bundle.kernels if diagnosed(kernel)]
+    functions += [smooth_loop(model, kernel) for kernel in bundle.kernels if kernel.backward]
+    functions += [multi_loop(model, spec, by_name) for spec in multi_filters(bundle)]
     parts = [f"/* {generated_notice(model, bundle.description.get('source', ''))}",
              f" * CasADi {ca.__version__}. */",
              "#include <math.h>",
@@ -361,4 +350,4 @@ def public_functions(bundle: Bundle) -> list[str]:
     trusted = {k.name for k in trusted_kernels(bundle)}
     for kernel in bundle.kernels:
         names += public_names(bundle.model_name, kernel, kernel.name in trusted)
-    return names
+    return names + [f"{bundle.model_name}_{spec.name}_run_multi" for spec in multi_filters(bundle)]

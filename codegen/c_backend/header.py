@@ -15,7 +15,10 @@ import casadi as ca
 
 from ..spec import STATUS_CODES, STATUS_GATED, STATUS_NONFINITE, Arg, Bundle, Kernel
 from .api import param_list, passing, run_params, trusted_kernels
+from .arguments import diagnosed
 from .names import ascii_text, generated_notice
+from .multi_loop import multi_doc, multi_filters, multi_params
+from .smooth_loop import smooth_doc, smooth_params
 from .stack import STACK_PLACEHOLDER
 from .template_util import template_text
 
@@ -31,6 +34,9 @@ def _number(value) -> str:
 def _time_doc(kernel: Kernel) -> list[str]:
     """Which instant each time argument means, stated per kind of function."""
     names = {a.name for a in kernel.inputs}
+    if kernel.backward:
+        return [" * Time: x and P (filtered) and the outputs xs, Ps (smoothed) are the estimate at time t; the inputs",
+                " *   xs, Ps are the smoothed estimate at t + dt (the step [t, t + dt] follows this estimate)."]
     if "_step_" in kernel.name and {"t", "dt"} <= names:
         return [" * Time: x and P are the estimate at time t; the measurement z was taken at t + dt.",
                 " *   The step predicts from t to t + dt, then updates at t + dt; outputs are at t + dt.",
@@ -148,6 +154,22 @@ def _function_doc(model: str, kernel: Kernel, trusted: bool = False) -> list[str
                   " */",
                   f"#define {_macro(name)}_RUN_STACK_BYTES {STACK_PLACEHOLDER.format(name + '_run')}",
                   f"SYMKF_API int {name}_run({', '.join(run_params(kernel))});", ""]
+    if diagnosed(kernel):
+        kept = diagnosed(kernel)
+        lines += ["/**", f" * {name}_run_diag: {name}_run that also keeps each step's "
+                  + " and ".join(a.name for a in kept) + " (as the step returns them):",
+                  " *   " + ", ".join(f"{a.name}_hist[k * {a.size} ...]" for a in kept)
+                  + " (n_steps blocks each; a failed step's block is unspecified),",
+                  " *   e.g. for the normalised innovation squared y^T S^-1 y of every step.",
+                  " * Returns: as _run.",
+                  f" * Stack: {_macro(name)}_RUN_DIAG_STACK_BYTES bytes (worst call path, measured by the compiler).",
+                  " */",
+                  f"#define {_macro(name)}_RUN_DIAG_STACK_BYTES {STACK_PLACEHOLDER.format(name + '_run_diag')}",
+                  f"SYMKF_API int {name}_run_diag({', '.join(run_params(kernel, diagnostics=True))});", ""]
+    if kernel.backward:
+        lines += smooth_doc(model, kernel) + [
+            f"#define {_macro(name)}_RUN_STACK_BYTES {STACK_PLACEHOLDER.format(name + '_run')}",
+            f"SYMKF_API int {name}_run({', '.join(smooth_params(kernel))});", ""]
     return lines
 
 
@@ -238,6 +260,12 @@ def header(bundle: Bundle, content_hash: str, compiler: str = "cc", flags: str =
     trusted = {k.name for k in trusted_kernels(bundle)}
     for kernel in bundle.kernels:
         lines += _function_doc(model, kernel, kernel.name in trusted)
+    by_name = {k.name: k for k in bundle.kernels}
+    for spec in multi_filters(bundle):
+        name = f"{model}_{spec.name}_run_multi"
+        lines += multi_doc(model, spec, by_name) + [
+            f"#define {_macro(name)}_STACK_BYTES {STACK_PLACEHOLDER.format(name)}",
+            f"SYMKF_API int {name}({', '.join(multi_params(spec, by_name))});", ""]
     lines += ["#ifdef __cplusplus", "}", "#endif", f"#endif /* {guard} */", ""]
     return ascii_text("\n".join(lines))
 

@@ -46,6 +46,7 @@ from ..spec import STATUS_DOMAIN, STATUS_NOT_PD, Arg, Family
 from .framework import (all_finite, compose_step, filter_spec, innovation, make_kernel, masked_noise, register_family,
                         update_outputs)
 from .iterated import IteratedOptions, iterated_update_expr, iterations
+from .rts import cross_covariance, smooth_kernel
 
 
 # ---------------------------------------------------------------------- process noise
@@ -75,11 +76,16 @@ def _predict_doc(model: Model, name: str, detail: str) -> str:
 
 
 # ---------------------------------------------------------------------- EKF
-def ekf_predict_expr(symbols: Symbols, fns: ModelFunctions, x, P, t, dt, Q):
+def ekf_prediction(symbols: Symbols, fns: ModelFunctions, x, P, t, dt, Q):
+    """x- = f_d(x), P- = F P F^T + Q_d, and F (the smoother's cross-covariance is P F^T)."""
     s = symbols.sym
     x_next, F = fns.for_filter("ekf").fd_and_jac(t, dt, x, s["u"], s["p"])
     FPF, Qd = linalg.sandwich(F, P), process_noise(symbols, fns, Q, x, t, dt)
-    return x_next, linalg.symmetric(P.shape[0], lambda i, j: FPF[i, j] + linalg.symmetric_part(Qd, i, j))
+    return x_next, linalg.symmetric(P.shape[0], lambda i, j: FPF[i, j] + linalg.symmetric_part(Qd, i, j)), F
+
+
+def ekf_predict_expr(symbols: Symbols, fns: ModelFunctions, x, P, t, dt, Q):
+    return ekf_prediction(symbols, fns, x, P, t, dt, Q)[:2]
 
 
 def ekf_update_expr(symbols: Symbols, fns: ModelFunctions, name: str, msym: dict, wrap, x, P, t):
@@ -136,7 +142,11 @@ def ekf_kernels(model: Model, symbols: Symbols, fns: ModelFunctions) -> Family:
             symbols, msym, marg, UPDATE_INPUTS,
             update_outputs(upd, s["x"], s["P"], msym["gate"], msym["mask"], update_inputs_finite(symbols))))
         kernels.append(compose_step(f"ekf_step_{name}", kernels[0], kernels[-1]))
-    return Family(kernels, [filter_spec("ekf", "ekf", kernels, model.measurements)])
+    x_pred, P_pred, F = ekf_prediction(symbols, fns, s["x"], s["P"], s["t"], s["dt"], Q)
+    kernels.append(smooth_kernel("ekf_smooth", "EKF RTS smoother: one backward step from step k + 1 to k "
+                                 "(G = P F^T (P-)^-1).", symbols, qsym, qarg, ["t", "dt", "x", "P", "u", "p", "Q"],
+                                 (x_pred, P_pred, s["P"] @ F.T, linalg.psd_flag(s["P"]))))
+    return Family(kernels, [filter_spec("ekf", "ekf", kernels, model.measurements, smooth="ekf_smooth")])
 
 
 # ---------------------------------------------------------------------- UKF
@@ -185,6 +195,12 @@ def _angle_difference(a: ca.SX, b: ca.SX, wrap: tuple[bool, ...]) -> ca.SX:
 
 
 def ukf_predict_expr(symbols: Symbols, fns: ModelFunctions, x, P, t, dt, Q):
+    return ukf_propagation(symbols, fns, x, P, t, dt, Q)[:3]
+
+
+def ukf_propagation(symbols: Symbols, fns: ModelFunctions, x, P, t, dt, Q):
+    """The UKF prediction (x-, P-, success flag) and what the unscented smoother needs besides:
+    the weights, each sigma point's offset from x and each propagated point's from x-."""
     if fns.config.precision == "float":
         return ukf_predict_deviations(symbols, fns, x, P, t, dt, Q)
     s = symbols.sym
@@ -197,8 +213,10 @@ def ukf_predict_expr(symbols: Symbols, fns: ModelFunctions, x, P, t, dt, Q):
     moved = fd(t, dt, x, ca.tril(L), s["u"], s["p"])
     propagated = [moved[:, i] for i in range(2 * n + 1)]
     x_pred = _weighted_mean(propagated, weights)
-    return x_pred, _sigma_covariance(weights, [pt - x_pred for pt in propagated],
-                                     process_noise(symbols, fns, Q, x, t, dt)), ok
+    moved = [pt - x_pred for pt in propagated]
+    offsets = [ca.SX.zeros(n)] + [L[:, i] for i in range(n)] + [-L[:, i] for i in range(n)]
+    return (x_pred, _sigma_covariance(weights, moved, process_noise(symbols, fns, Q, x, t, dt)), ok,
+            weights, offsets, moved)
 
 
 def _sigma_covariance(weights: list, deviations: list[ca.SX], Qd: ca.SX) -> ca.SX:
@@ -227,7 +245,9 @@ def ukf_predict_deviations(symbols: Symbols, fns: ModelFunctions, x, P, t, dt, Q
     Y = fns.for_filter("ukf").increment_columns(len(offsets))(t, dt, x, D, s["u"], s["p"])  # split only at an event
     moved = [Y[:, i] for i in range(len(offsets))]
     mean = _weighted_mean(moved, weights)
-    return x + mean, _sigma_covariance(weights, [y - mean for y in moved], process_noise(symbols, fns, Q, x, t, dt)), ok
+    deviations = [y - mean for y in moved]
+    return (x + mean, _sigma_covariance(weights, deviations, process_noise(symbols, fns, Q, x, t, dt)), ok,
+            weights, [ca.SX.zeros(x.shape)] + offsets[1:], deviations)
 
 
 def ukf_update_expr(symbols: Symbols, fns: ModelFunctions, name: str, msym: dict, wrap, x, P, t):
@@ -277,7 +297,15 @@ def ukf_kernels(model: Model, symbols: Symbols, fns: ModelFunctions) -> Family:
             update_outputs(upd, s["x"], s["P"], msym["gate"], msym["mask"],
                            update_inputs_finite(symbols))))
         kernels.append(compose_step(f"ukf_step_{name}", kernels[0], kernels[-1]))
-    return Family(kernels, [filter_spec("ukf", "ukf", kernels, model.measurements, defaults={"kappa": 0.0})])
+    x_pred, P_pred, ok_pred, weights, offsets, moved = ukf_propagation(symbols, fns, s["x"], s["P"], s["t"],
+                                                                       s["dt"], Q)
+    kernels.append(smooth_kernel("ukf_smooth", "Unscented RTS smoother (Sarkka 2008): one backward step from step "
+                                 "k + 1 to k (2n+1 sigma points of x, P at step k).", symbols, qsym, qarg,
+                                 ["t", "dt", "x", "P", "u", "p", "Q", "kappa"],
+                                 (x_pred, P_pred, cross_covariance(weights, offsets, moved),
+                                  ok_pred * (s["kappa"] + model.nx > 0))))
+    return Family(kernels, [filter_spec("ukf", "ukf", kernels, model.measurements, defaults={"kappa": 0.0},
+                                        smooth="ukf_smooth")])
 
 
 register_family("ekf", ekf_kernels, options=(IteratedOptions,))

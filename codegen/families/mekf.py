@@ -40,6 +40,7 @@ from .chart import ManifoldOptions
 from .framework import CANONICAL_ORDER, filter_spec, make_kernel, masked_noise, register_family
 from .iterated import MekfIteratedOptions, iterations, prior_sigmas
 from .kalman import UPDATE_INPUTS, _predict_doc
+from .rts import smooth_kernel
 from .manifold import (ManifoldFunctions, ManifoldSymbols, chart_innovation, error_process_noise, measurement_input,
                        predict_kernel, predict_status, require_quaternion, update_outputs)
 
@@ -226,7 +227,9 @@ def mekf_kernels(model: Model, symbols: Symbols, fns: ModelFunctions) -> Family:
         step, step_variants = with_variants(model, mf, name, step, step.name)
         kernels += [update, step, *run, *step_variants]
     run = {name: f"mekf_run_{name}" for name in model.measurements}
-    return Family(kernels, [filter_spec("mekf", "manifold_ekf", kernels, model.measurements, run=run)])
+    kernels.append(mekf_smooth_kernel(model, mf, ms))
+    return Family(kernels, [filter_spec("mekf", "manifold_ekf", kernels, model.measurements, run=run,
+                                        smooth="mekf_smooth")])
 
 
 def mekf_run_kernels(model: Model, mf: ManifoldFunctions, ms: ManifoldSymbols, name: str, predict: Kernel,
@@ -313,10 +316,26 @@ PREDICT_INPUTS = ["t", "dt", "x", "P", "u", "p", "Q"]
 
 def mekf_predict_expr(model: Model, mf: ManifoldFunctions, ms: ManifoldSymbols):
     """x̂⁻ = f_d(x̂) projected, P⁻ = F P Fᵀ + Q_d (lower triangle, mirrored)."""
+    return mekf_prediction(model, mf, ms)[:2]
+
+
+def mekf_prediction(model: Model, mf: ManifoldFunctions, ms: ManifoldSymbols):
+    """:func:`mekf_predict_expr` and the error-state F (the smoother's cross-covariance is P Fᵀ)."""
     s, P, Q = ms.base.sym, ms.sym["P"], ms.sym["Q"]
     x_pred, F = mf.step_and_jac(s["t"], s["dt"], s["x"], s["u"], s["p"])
     FPF, Qd = linalg.sandwich(F, P), error_process_noise(model, mf, ms.base, Q, s["x"], s["t"], s["dt"])
-    return x_pred, linalg.symmetric(P.shape[0], lambda i, j: FPF[i, j] + linalg.symmetric_part(Qd, i, j))
+    return x_pred, linalg.symmetric(P.shape[0], lambda i, j: FPF[i, j] + linalg.symmetric_part(Qd, i, j)), F
+
+
+def mekf_smooth_kernel(model: Model, mf: ManifoldFunctions, ms: ManifoldSymbols) -> Kernel:
+    """The error-state RTS backward step (codegen/families/rts.py on the chart): D = P Fᵀ,
+    x^s_k = x_k ⊞ G (x^s_{k+1} ⊟ x̂⁻)."""
+    P = ms.sym["P"]
+    x_pred, P_pred, F = mekf_prediction(model, mf, ms)
+    return smooth_kernel("mekf_smooth", "Multiplicative EKF RTS smoother: one backward step from step k + 1 to k "
+                         "in error coordinates (G = P F^T (P-)^-1, x = x (+) G (xs (-) x-)).", ms.base, ms.sym, ms.arg,
+                         PREDICT_INPUTS, (x_pred, P_pred, P @ F.T, linalg.psd_flag(P)), chart=mf.chart,
+                         domain=mf.chart.unit_norm(ms.base.sym["x"]))
 
 
 def mekf_step_kernel(model: Model, mf: ManifoldFunctions, ms: ManifoldSymbols, name: str, predict: Kernel,

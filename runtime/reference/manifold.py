@@ -165,20 +165,23 @@ class ManifoldReference:
             A[e:e + 3, e:e + 3] += moving[:3, :3]
         return A
 
+    def mekf_transition(self, t: float, dt: float):
+        """The MEKF's x̂⁻ = f_d(x̂) projected and its error-state F (the smoother's too)."""
+        x_f = self._fd(t, dt, self.x)
+        x_next = self.project(x_f)
+        if self.transition == "series":
+            Adt = self.error_rate_matrix(t) * dt
+            return x_next, np.eye(self.ne) + Adt + 0.5 * Adt @ Adt
+        F_state = np.array(self.functions.jac_fd(t, dt, self.x, self.u, self.p))
+        return x_next, self.local_jacobian(x_next, x_f) @ F_state @ self.retract_jacobian(self.x)
+
     # ---------------------------------------------------------------- steps
     def predict(self, t: float, dt: float, u=None) -> None:
         if u is not None:
             self.u = np.array(u, float)
         noise = self.process_noise(t, dt)
         if self.family == "mekf":
-            x_f = self._fd(t, dt, self.x)
-            x_next = self.project(x_f)
-            if self.transition == "series":
-                Adt = self.error_rate_matrix(t) * dt
-                F = np.eye(self.ne) + Adt + 0.5 * Adt @ Adt
-            else:
-                F_state = np.array(self.functions.jac_fd(t, dt, self.x, self.u, self.p))
-                F = self.local_jacobian(x_next, x_f) @ F_state @ self.retract_jacobian(self.x)
+            x_next, F = self.mekf_transition(t, dt)
             self.x, self.P = x_next, _sym(F @ self.P @ F.T + noise)
             return
         offsets, weights = self._sigma_offsets()

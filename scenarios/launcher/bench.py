@@ -30,7 +30,8 @@ x 100 runs x both filters; ``--scheduler`` runs it on Dask; tables and figures n
 throughput per worker, its CPU seconds split into the compiled runs and the rest, and the library
 it ran (content hash, -O flags).
 ``--instructions`` counts, with callgrind, the instructions of one call of each part (predict,
-update, the fused step, a step inside the run loop), with where a step's instructions go
+update, the fused step, a step inside the run loop, a backward step of the RTS smoother's
+``<filter>_smooth_run`` over that run), with where a step's instructions go
 (wrapper, run loop, propagation, h and H, predict and update kernels, libm).
 """
 from __future__ import annotations
@@ -250,7 +251,7 @@ def time_reference(family: str, work: Workload, steps: int, batch: int = 50) -> 
 
 #: Parts of a step counted by ``--instructions``: the predict and update calls on their own,
 #: the fused step call, and a step inside the compiled run loop.
-PARTS = ("predict", "update", "step", "run")
+PARTS = ("predict", "update", "step", "run", "backward")
 #: Exclusive instructions per call of the functions around the kernels (rows of the parts table):
 #: ``wrapper``, the public step function's own work (input checks, z masking, argument set-up,
 #: output checks and copies); ``composition``, a fused-step kernel's own work (its copies and
@@ -295,6 +296,7 @@ def c_loop_instructions(work: Workload) -> dict[str, dict]:
         for family in FILTERS:
             counts = {part: _instructions_per_step(exe, family, part, stdin, Path(tmp)) for part in PARTS}
             parts = {part: total for part, (total, _) in counts.items()}
+            parts["backward"] -= parts["run"]          # the driver's backward part runs the forward loop first
             for row, (part, functions) in SELF_COSTS.items():
                 parts[row] = sum(counts[part][1].get(f.format(m="launcher", f=family), 0) for f in functions)
             parts.update(step_breakdown(counts["step"][1], "launcher", family))
@@ -418,7 +420,7 @@ def instruction_parts_table(report: dict) -> list[str]:
     lines = ["", f"{'instructions per call':<26}" + "".join(f"{f.upper():>13}" for f in FILTERS)]
     for part in (*PARTS, *SELF_COSTS, *STEP_FUNCTIONS):
         label = {"wrapper": "step: wrapper, checks", "composition": "step: composition",
-                 "loop": "run: loop, checks"}.get(part, part)
+                 "loop": "run: loop, checks", "backward": "smoother: backward step"}.get(part, part)
         lines.append(f"{label:<26}" + "".join(f"{parts[f].get(part, 0):>13,.0f}" for f in FILTERS))
     return lines
 

@@ -3,14 +3,16 @@
 #include <time.h>
 #include "launcher.h"
 /* stdin: x0[6] P0[36] Q[36] R[9] kappa p[6] n_base, n_base lines t z[3] q[2].
-   argv[1]: ekf|ukf, argv[2]: steps, argv[3] (optional) part: step (default), predict, update, run.
+   argv[1]: ekf|ukf, argv[2]: steps, argv[3] (optional) part: step (default), predict, update, run, backward.
    step/predict/update: one call of launcher_<filter>_<part>[_radar] per step; run: one call of
-   launcher_<filter>_step_radar_run over all the steps. The record restarts from x0, P0 at its end. */
+   launcher_<filter>_step_radar_run over all the steps; backward: that run, then the smoother's
+   backward pass launcher_<filter>_smooth_run over it. The record restarts from x0, P0 at its end. */
 static double now(void) { struct timespec ts; clock_gettime(CLOCK_MONOTONIC, &ts); return ts.tv_sec + 1e-9 * ts.tv_nsec; }
 static int rd(double *v, int n) { int i; for (i = 0; i < n; ++i) if (scanf("%lf", &v[i]) != 1) return 0; return 1; }
 static double T[20000], Z[60000], QS[40000];
 static double RT[20000], RDT[20000], RZ[60000], RQ[40000], RM[60000], XH[120000], PH[720000];
-static int SH[20000];
+static int SH[20000], SS[20000];
+static double XS[120000], PS[720000];
 static double x0[6], P0[36], x[6], P[36], Q[36], R[9], kappa, p[6], y[3], S[9], mask[3] = {1, 1, 1}, gate[3] = {0, 0, 0};
 static int call(int ukf, char part, int j, double dt) {
   const double *q = &QS[2 * j], *z = &Z[3 * j];
@@ -32,6 +34,10 @@ static int run(int ukf, int n, int steps) {
   return ukf ? launcher_ukf_step_radar_run(steps, RT, RDT, x0, P0, p, Q, RQ, RZ, RM, R, gate, kappa, XH, PH, SH)
              : launcher_ekf_step_radar_run(steps, RT, RDT, x0, P0, p, Q, RQ, RZ, RM, R, gate, XH, PH, SH);
 }
+static int backward(int ukf, int steps) {
+  return ukf ? launcher_ukf_smooth_run(steps, RT, RDT, XH, PH, p, Q, kappa, SH, XS, PS, SS)
+             : launcher_ekf_smooth_run(steps, RT, RDT, XH, PH, p, Q, SH, XS, PS, SS);
+}
 int main(int argc, char **argv) {
   double dt = 0.05, batches[1000], start;
   int n, i, k, b, nb, steps, ukf, code = 0;
@@ -40,9 +46,10 @@ int main(int argc, char **argv) {
   ukf = argv[1][0] == 'u';
   if (sscanf(argv[2], "%d", &steps) != 1 || scanf("%d", &n) != 1 || n > 20000) return 2;
   for (i = 0; i < n; ++i) if (!rd(&T[i], 1) || !rd(&Z[3 * i], 3) || !rd(&QS[2 * i], 2)) return 2;
-  if (part == 'r') {
+  if (part == 'r' || part == 'b') {
     start = now();
     code = run(ukf, n, steps);
+    if (part == 'b' && code == 0) code = backward(ukf, steps);
     printf("%.6f %d\n", 1e6 * (now() - start) / steps, code);
     return 0;
   }

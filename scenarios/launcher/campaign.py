@@ -3,7 +3,8 @@
 For each case (radar rate x initial error) and each Monte Carlo run: radar noise is drawn once
 and fed to *both* filters; each filter runs the whole flight in one call of the generated
 ``<filter>_step_radar_run`` loop (C, GIL released), and runs are spread over all cores with
-threads. Errors are accumulated on the fly (eq (8), eq (11), NEES).
+threads. Errors are accumulated on the fly (eq (8), eq (11), NEES), for each filter and for its
+fixed-interval smoothing (``ekf_rts``, ``ukf_rts``: the generated backward pass over the run).
 
 Two named filter configurations (``PRESETS``, ``--filters``), each a codegen configuration
 (its own library, through ``load("launcher", **overrides)``) plus a tuning; the paper gives none:
@@ -45,8 +46,10 @@ from symkf.codegen import make_config
 from symkf.codegen.model_functions import ModelFunctions
 from symkf.models import get_model
 from symkf.models import launcher as L
+from symkf.runtime import smooth
 from symkf.scenarios.campaign import ModelKey, Task, chunks, compiled_model, model_key, run_campaign, run_rng
-from symkf.scenarios.metrics import ErrorAccumulator, nees, nees_band, state_error, whole_flight_mean
+from symkf.scenarios.consistency import chi2_band
+from symkf.scenarios.metrics import ErrorAccumulator, nees, state_error, whole_flight_mean
 from .truth import propagate, radar_track
 
 STATE_NAMES = ("V", "gamma", "psi", "r", "theta", "phi")
@@ -66,6 +69,9 @@ PRESETS = {
 }
 TUNING = PRESETS["correct"]["tuning"]
 FILTERS = ("ekf", "ukf")
+#: The fixed-interval smoothings of each filter's run (symkf.runtime.smooth: RTS, unscented RTS).
+SMOOTHED = ("ekf_rts", "ukf_rts")
+ESTIMATES = FILTERS + SMOOTHED
 EVENTS = tuple(get_model("launcher").events)     # Table 2's switches (s), declared by the model
 NEES_STRIDE = 5          # NEES every 5th step (0.25 s at 20 Hz): plotted, not tabulated
 EXCURSION_ANGLE_RAD = 0.1   # an angle error above 0.1 rad (5.7 deg) at any time: an excursion
@@ -114,9 +120,9 @@ class CaseResult:
     @classmethod
     def empty(cls, case: Case, times: np.ndarray) -> "CaseResult":
         def accumulators():
-            return {f: ErrorAccumulator(len(times), 6, NEES_STRIDE) for f in FILTERS}
+            return {f: ErrorAccumulator(len(times), 6, NEES_STRIDE) for f in ESTIMATES}
         def per_filter(value):
-            return {f: type(value)(value) for f in FILTERS}
+            return {f: type(value)(value) for f in ESTIMATES}
         return cls(case, times, accumulators(), wall_s=per_filter(0.0), cpu_s=per_filter(0.0), failed_steps=per_filter(0),
                    diverged_runs=per_filter([]), excursion_runs=per_filter([]), errors_converged=accumulators(),
                    per_run_chunks=per_filter([]))
@@ -195,7 +201,7 @@ class ChunkResult:
     errors_converged: dict[str, ErrorAccumulator]
     per_run: dict[str, np.ndarray]
     wall_s: dict[str, float]
-    cpu_s: dict[str, float] = field(default_factory=lambda: {f: 0.0 for f in FILTERS})
+    cpu_s: dict[str, float] = field(default_factory=lambda: {f: 0.0 for f in ESTIMATES})
     task_cpu_s: float = 0.0          # the whole task's CPU seconds (its thread's)
 
 
@@ -211,8 +217,8 @@ def run_chunk(key: ModelKey, case: Case, seed: int, runs: tuple[int, int], durat
     x0, P0 = initial_estimate(case, truth[0], tuning["P0_floor"])
 
     def accumulators():
-        return {f: ErrorAccumulator(len(times), 6, NEES_STRIDE) for f in FILTERS}
-    out = ChunkResult(accumulators(), accumulators(), {f: [] for f in FILTERS}, {f: 0.0 for f in FILTERS})
+        return {f: ErrorAccumulator(len(times), 6, NEES_STRIDE) for f in ESTIMATES}
+    out = ChunkResult(accumulators(), accumulators(), {f: [] for f in ESTIMATES}, {f: 0.0 for f in ESTIMATES})
     # paper 004 fuses every radar sample: no innovation gate; built once per task (1.2 ms each), reset per run
     filters = {family: model.filter(family, x0, P0, tuning["Q"] * tuning[f"{family}_q_scale"], gate="none",
                                     t0=times[0], **({"kappa": tuning["kappa"]} if family == "ukf" else {}))
@@ -225,17 +231,29 @@ def run_chunk(key: ModelKey, case: Case, seed: int, runs: tuple[int, int], durat
             result = f.run(times, z, measurement, q=q)
             out.wall_s[family] += time.perf_counter() - start
             out.cpu_s[family] += time.thread_time() - cpu
-            error = state_error(truth, result.x, ANGLE_STATES)
-            squared, nees_values = error**2, nees(error[::NEES_STRIDE], result.P[::NEES_STRIDE])
-            kind = outcome(error)
-            out.errors[family].add_run(squared, nees_values)
-            if kind != "diverged":
-                out.errors_converged[family].add_run(squared, nees_values)
-            out.per_run[family].append([run, np.count_nonzero(result.status), kind == "diverged",
-                                        kind == "excursion", nees_values.mean(), *squared.mean(axis=0), *error[-1]])
+            start, cpu = time.perf_counter(), time.thread_time()
+            smoothed = smooth(f, result, errors="keep")
+            out.wall_s[f"{family}_rts"] += time.perf_counter() - start
+            out.cpu_s[f"{family}_rts"] += time.thread_time() - cpu
+            _add_run(out, family, run, truth, result.x, result.P, np.count_nonzero(result.status))
+            _add_run(out, f"{family}_rts", run, truth, smoothed.x_smooth, smoothed.P_smooth,
+                     np.count_nonzero(smoothed.smooth_status))
     out.per_run = {f: np.array(rows, dtype=float).reshape(-1, len(PER_RUN_COLUMNS)) for f, rows in out.per_run.items()}
     out.task_cpu_s = time.thread_time() - task_cpu
     return out
+
+
+def _add_run(out: ChunkResult, estimate: str, run: int, truth: np.ndarray, x: np.ndarray, P: np.ndarray,
+             failed: int) -> None:
+    """One run's errors, NEES and summary row of ``estimate`` (a filter or its smoothing)."""
+    error = state_error(truth, x, ANGLE_STATES)
+    squared, nees_values = error**2, nees(error[::NEES_STRIDE], P[::NEES_STRIDE])
+    kind = outcome(error)
+    out.errors[estimate].add_run(squared, nees_values)
+    if kind != "diverged":
+        out.errors_converged[estimate].add_run(squared, nees_values)
+    out.per_run[estimate].append([run, failed, kind == "diverged", kind == "excursion", nees_values.mean(),
+                                  *squared.mean(axis=0), *error[-1]])
 
 
 class Campaign:
@@ -280,7 +298,7 @@ class Campaign:
 
         def fold(task: Task, chunk: ChunkResult) -> None:
             result = results[task.args[1]]
-            for family in FILTERS:
+            for family in ESTIMATES:
                 result.errors[family].merge(chunk.errors[family])
                 result.errors_converged[family].merge(chunk.errors_converged[family])
                 result.wall_s[family] += chunk.wall_s[family]
@@ -316,7 +334,7 @@ def consistency(result: CaseResult, family: str) -> dict:
     """Mean NEES and the fraction of time steps inside the 95 % chi-square band, over the whole
     flight and outside EVENT_WINDOW_S after lift-off and each model event."""
     accumulator = result.errors[family]
-    low, high = nees_band(6, accumulator.runs)
+    low, high = (float(v) for v in chi2_band(6 * accumulator.runs, accumulator.runs))    # chi2(6 runs) / runs
     average = accumulator.mean_nees()
     inside = (average >= low) & (average <= high)
     times = result.times[::accumulator.nees_stride]

@@ -2,10 +2,11 @@
 
 4 cases (20 Hz and 10 Hz radar x small eq (9) and large eq (10) initial error), N runs each,
 both filters fed the same radar draws, the whole run of each filter in one compiled C call.
-Writes to --out: rms_table.csv, rms_table.md, fig_velocity_rms.png, fig_radius_rms.png,
-fig_nees.png (scenarios/launcher/figures.py), summary.json, series.npz (the figures' series:
-``symkf plot <out>`` redraws them without running a filter). Tuning and truth: scenarios/launcher/campaign.py,
-truth.py.
+Writes to --out: rms_table.csv (with the smoothers' columns ekf_rts, ukf_rts), rms_table.md,
+fig_velocity_rms.png, fig_radius_rms.png, fig_nees.png, fig_smoother_rms.png (filter vs smoother
+speed RMS(t); scenarios/launcher/figures.py), summary.json, series.npz (the figures' series:
+``symkf plot <out>`` redraws them without running a filter). Tuning and truth:
+scenarios/launcher/campaign.py, truth.py.
 """
 from __future__ import annotations
 
@@ -21,7 +22,7 @@ from symkf.models import launcher as L
 from . import campaign as C
 from . import figures, series
 from symkf.scenarios.campaign import ProgressBar, add_scheduler_arguments, scheduler_problem
-from .campaign import FILTERS, PRESETS, STATE_NAMES, TUNING, Campaign, CaseResult, consistency
+from .campaign import FILTERS, PRESETS, SMOOTHED, STATE_NAMES, TUNING, Campaign, CaseResult, consistency
 
 UNITS = dict(zip(STATE_NAMES, L.TABLE3_UNITS))
 
@@ -89,6 +90,7 @@ def run(args) -> int:
     figures.plot_rms(results, "V", "Speed error RMS (m/s)", out / "fig_velocity_rms.png", config)
     figures.plot_rms(results, "r", "Radius error RMS (m)", out / "fig_radius_rms.png", config)
     figures.plot_nees(results, out / "fig_nees.png", config)
+    figures.plot_smoother_rms(results, "V", "Speed error RMS (m/s)", out / "fig_smoother_rms.png", config)
     series.save(results, out, config)                     # symkf plot <out> redraws the figures from it
     written = time.perf_counter() - start - wall
     if not args.quiet:
@@ -103,6 +105,7 @@ def run(args) -> int:
             if isinstance(value, bool):
                 print(f"  {claim}: {value}")
         print(f"  ukf_le_ekf_every_state: {summary['claims']['ukf_le_ekf_every_state']}")
+        print(f"  smoothed RMS above the filter's in: {summary['claims']['rts_above_filter_cells'] or 'no cell'}")
         print(f"wrote {out}/ in {wall + written:.1f} s: campaign {wall:.1f} s ({campaign.stats.executor}, "
               f"{campaign.stats.workers} workers), tables and figures {written:.1f} s")
     return 0
@@ -122,7 +125,8 @@ def table_rows(results: list[CaseResult]) -> list[dict]:
             paper_ekf, paper_ukf = L.TABLE3[key][state]
             rows.append({"state": state, "unit": UNITS[state], "case": result.case.label,
                          "ekf": float(ours["ekf"][i]), "ukf": float(ours["ukf"][i]),
-                         "paper_ekf": paper_ekf, "paper_ukf": paper_ukf})
+                         "paper_ekf": paper_ekf, "paper_ukf": paper_ukf,
+                         **{s: float(result.whole_flight(s)[i]) for s in SMOOTHED}})
     return rows
 
 
@@ -144,6 +148,15 @@ def markdown_table(results: list[CaseResult], rows: list[dict]) -> str:
         for case in cases:
             row = next(r for r in rows if r["state"] == state and r["case"] == case)
             cells += [f"{row['ekf']:.3g} ({row['paper_ekf']:.3g})", f"{row['ukf']:.3g} ({row['paper_ukf']:.3g})"]
+        lines.append(f"| {state} ({UNITS[state]}) | " + " | ".join(cells) + " |")
+    lines += ["", "Fixed-interval smoothing of the same runs (RTS over the EKF, unscented RTS over the UKF): "
+              "smoothed (filtered)", "", "| State | " + " | ".join(f"{c} EKF+RTS | {c} UKF+RTS" for c in cases) + " |",
+              rule]
+    for state in STATE_NAMES:
+        cells = []
+        for case in cases:
+            row = next(r for r in rows if r["state"] == state and r["case"] == case)
+            cells += [f"{row[f + '_rts']:.3g} ({row[f]:.3g})" for f in FILTERS]
         lines.append(f"| {state} ({UNITS[state]}) | " + " | ".join(cells) + " |")
     runs = results[0].errors["ekf"].runs
     for kind, threshold in (("diverged", f"angle error still above {C.DIVERGED_ANGLE_RAD} rad in the second half"),
@@ -186,7 +199,7 @@ def make_summary(results: list[CaseResult], args, wall: float, campaign: Campaig
     cases = {}
     for result in results:
         entry = {}
-        for family in FILTERS:
+        for family in FILTERS + SMOOTHED:
             entry[family] = {
                 "rms_eq11": dict(zip(STATE_NAMES, result.whole_flight(family).tolist())),
                 **consistency(result, family),
@@ -217,7 +230,8 @@ def claims(results: list[CaseResult]) -> dict:
     by_label = {r.case.label: r for r in results}
     ratio = {label: r.whole_flight("ekf") / np.maximum(r.whole_flight("ukf"), 1e-300) for label, r in by_label.items()}
     ukf_better = {label: bool(np.all(r.whole_flight("ukf") <= r.whole_flight("ekf"))) for label, r in by_label.items()}
-    out = {"ukf_le_ekf_every_state": ukf_better,
+    out = {"ukf_le_ekf_every_state": ukf_better, "rts_le_filter_every_cell": smoother_exceptions(results) == [],
+           "rts_above_filter_cells": smoother_exceptions(results),
            "ekf_over_ukf_ratio": {label: dict(zip(STATE_NAMES, np.round(v, 3).tolist())) for label, v in ratio.items()}}
     for rate in {r.case.rate_hz for r in results}:
         small, large = by_label.get(f"{rate}Hz small"), by_label.get(f"{rate}Hz large")
@@ -230,3 +244,10 @@ def claims(results: list[CaseResult]) -> dict:
             out[f"gap_larger_at_10Hz_{init}"] = bool(
                 np.median(ratio[slow.case.label]) > GAP_MARGIN * np.median(ratio[fast.case.label]))
     return out
+
+
+def smoother_exceptions(results: list[CaseResult]) -> list[str]:
+    """The cells (case, state, filter) whose smoothed whole-flight RMS exceeds the filter's."""
+    return [f"{r.case.label} {state} {family.upper()}" for r in results for family in FILTERS
+            for state, smoothed, filtered in zip(STATE_NAMES, r.whole_flight(f"{family}_rts"), r.whole_flight(family))
+            if smoothed > filtered]

@@ -126,3 +126,23 @@ def plot_nees(results: list[CaseResult], path: Path, config: str) -> None:
         _mark_events(ax, result.times[-1])
         ax.set_ylabel("average NEES over runs")
     _finish(plt, fig, axes, f"Paper 004 launcher: consistency (NEES, 6 states) — {config}", path)
+
+
+def plot_smoother_rms(results: list, state: str, ylabel: str, path: Path, config: str) -> None:
+    """RMS(t) of one state, each filter (thin, dashed) beside its fixed-interval RTS smoothing
+    (solid, same colour): what the backward pass buys over the filter at every time."""
+    index = STATE_NAMES.index(state)
+    plt = _pyplot()
+    fig, axes, placed = _panels(plt, results)
+    for result in results:
+        ax = placed[result.case.label]
+        for family in ("ukf", "ekf"):
+            color = STYLE[family]["color"]
+            ax.semilogy(result.times, result.rms_in_table_units(family)[:, index], ls="--", lw=1.0, color=color,
+                        label=f"{family.upper()} filter", zorder=2)
+            ax.semilogy(result.times, result.rms_in_table_units(f"{family}_rts")[:, index], ls="-", lw=1.6,
+                        color=color, alpha=0.85, label=f"{family.upper()} + RTS smoother", zorder=3)
+        ax.set_title(f"{result.case.label} initial error", fontsize=10)
+        _mark_events(ax, result.times[-1])
+        ax.set_ylabel(ylabel)
+    _finish(plt, fig, axes, f"Paper 004 launcher: {ylabel.split(' (')[0]}, filter vs RTS smoother — {config}", path)

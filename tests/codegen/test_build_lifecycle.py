@@ -234,7 +234,7 @@ def test_export_bundle_anywhere(tmp_path, write_model, private_build):
     assert sorted(p.name for p in out.iterdir()) == ["Makefile", "libtiny.so", "manifest.json", "tiny.h", "tiny_api.c",
                                                      "tiny_fn_fd.c", "tiny_fn_fd_and_jac.c", "tiny_fn_h_and_jac_gps.c",
                                                      "tiny_fn_h_gps.c", "tiny_fn_jac_fd.c", "tiny_fn_jac_h_gps.c",
-                                                     "tiny_hash.c", "tiny_k_ekf_predict.c", "tiny_k_ekf_step_gps.c",
+                                                     "tiny_hash.c", "tiny_k_ekf_predict.c", "tiny_k_ekf_smooth.c", "tiny_k_ekf_step_gps.c",
                                                      "tiny_k_ekf_update_gps.c", "tiny_k_f.c", "tiny_k_fd.c",
                                                      "tiny_k_h_gps.c", "tiny_k_jac_fd.c", "tiny_k_jac_h_gps.c"]
     proc = subprocess.run(["make", "-j2", "-C", str(out), "all"], capture_output=True, text=True)

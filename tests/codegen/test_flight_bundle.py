@@ -97,10 +97,17 @@ def test_only_the_documented_api_is_exported_and_everything_is_ascii(model, over
     sources = [(directory / name).read_text(encoding="ascii") for name in manifest["sources"]]
     expected = {f"{model}_content_hash"}
     trusted = {kernel["trusted"] for kernel in manifest["kernels"] if kernel["trusted"]}   # a run's trusted kernel
+    kernels = {kernel["name"]: kernel for kernel in manifest["kernels"]}
     for kernel in manifest["kernels"]:
+        kept = [a for a in kernel["outputs"][:-1] if a["name"] not in kernel["carried"] and a["shape"][0] * a["shape"][1]]
         expected |= {f"{model}_{kernel['name']}", f"{model}_{kernel['name']}_v"}
-        expected |= {f"{model}_{kernel['name']}_run"} if kernel["carried"] else set()
+        expected |= {f"{model}_{kernel['name']}_run"} if kernel["carried"] or kernel["backward"] else set()
+        expected |= {f"{model}_{kernel['name']}_run_diag"} if kernel["carried"] and kept else set()   # + y, S
         expected |= {f"{model}_{kernel['name']}_unchecked_v"} if kernel["name"] in trusted else set()
+    for spec in manifest["filters"]:             # a loop over several measurements' records
+        own = {"q", "z", "mask", "R", "gate"}
+        if spec["predict"] and len(spec["update"]) > 1 and not own & {a["name"] for a in kernels[spec["predict"]]["inputs"]}:
+            expected.add(f"{model}_{spec['name']}_run_multi")
     assert _declared(header, model) == expected
     dynamic = subprocess.run(["nm", "-D", "--defined-only", str(directory / manifest["library"])],
                              capture_output=True, text=True, check=True).stdout

@@ -114,8 +114,8 @@ class Recorder:
                 return status
             return BoundCall(kernel, call)
 
-        def recording_run_function(backend, kernel):
-            real = run_function(backend, kernel)
+        def recording_run_function(backend, kernel, diagnostics=False):
+            real = run_function(backend, kernel, diagnostics)
             info = backend.kernels[kernel]
 
             def run(n_steps, *addresses):

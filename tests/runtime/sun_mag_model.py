@@ -1,30 +1,31 @@
-"""A new user's attitude model: a unit quaternion and a gyro bias, propagated with the gyro
-sample as input, and two body-frame unit vectors measured (a sun sensor and a magnetometer).
+"""A user's two-sensor attitude model: a gyro-driven attitude with gyro bias, seen by a sun sensor
+and a magnetometer (each a body-frame unit direction), at their own rates in a record.
 
-Written the way a user writes a model file; the filter tests take it through every call a
-careless user could get wrong (tests/runtime/test_no_silent_answers.py).
+State: the attitude quaternion (body -> inertial, scalar-last) and the gyro bias b; input: the gyro
+rates; q_dot = 1/2 q (x) (omega - b, 0), b constant. Each sensor measures R(q)^T d for a fixed
+inertial direction d (SUN, MAG).
 """
 import casadi as ca
 
 from symkf.models import Model
 from symkf.models import quaternion as quat
 
-SUN = (0.6, 0.0, 0.8)          # the sun direction in the reference frame (unit)
-FIELD = (0.0, 0.8, -0.6)       # the magnetic field direction in the reference frame (unit)
+SUN = (0.8, 0.6, 0.0)                 # inertial sun direction (unit)
+MAG = (0.2, 0.0, 0.9797958971132712)  # inertial magnetic-field direction (unit)
 
 
 def build():
-    m = Model("sun_mag", "attitude and gyro bias from a sun sensor and a magnetometer", paper="none")
-    q = m.quaternion_state("q", "attitude of the body in the reference frame (body -> reference)")
-    b = ca.vertcat(*[m.state(f"b_{a}", "rad/s", f"gyro bias, body {a}") for a in "xyz"])
-    gyro = ca.vertcat(*[m.input(f"w_{a}", "rad/s", f"gyro sample, body {a}") for a in "xyz"])
-    rate = gyro - b
-    m.set_dynamics({"q": 0.5 * quat.hamilton(q, ca.vertcat(rate, 0)), **{f"b_{a}": 0 for a in "xyz"}})
+    m = Model("sun_mag", "gyro-driven attitude with bias, sun sensor and magnetometer", paper="none")
+    q = m.quaternion_state("q", "attitude of the body in the inertial frame (body -> inertial)")
+    bias = ca.vertcat(*[m.state(f"b_{a}", "rad/s", f"gyro bias, body {a}") for a in "xyz"])
+    omega = ca.vertcat(*[m.input(f"w_{a}", "rad/s", f"gyro rate, body {a}") for a in "xyz"])
+    m.set_dynamics({"q": 0.5 * quat.hamilton(q, ca.vertcat(omega - bias, 0)),
+                    "b_x": 0, "b_y": 0, "b_z": 0})
     to_body = quat.rotation_matrix(q).T
-    sun, mag = to_body @ ca.DM(SUN), to_body @ ca.DM(FIELD)
-    m.measurement("sun", [(f"s_{a}", "-", f"sun direction, body {a}", sun[i]) for i, a in enumerate("xyz")],
-                  sigma=[0.01] * 3)
-    m.measurement("mag", [(f"m_{a}", "-", f"field direction, body {a}", mag[i]) for i, a in enumerate("xyz")],
-                  sigma=[0.03] * 3)
-    m.filters = ("mekf", "mukf")
+    for name, direction, sigma in (("sun", SUN, 0.01), ("mag", MAG, 0.03)):
+        seen = to_body @ ca.DM(direction)
+        m.measurement(name, [(f"{name}_{a}", "-", f"{name} direction, body {a}", seen[i]) for i, a in enumerate("xyz")],
+                      sigma=[sigma] * 3)
+    m.filters = ("mekf", "ekf")
+    m.quaternion_as_vector_families = ("ekf",)     # a plain EKF beside the MEKF, on purpose: the run test's second family
     return m

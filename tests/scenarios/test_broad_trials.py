@@ -62,7 +62,7 @@ def test_compare_over_a_folder_writes_one_table(tmp_path, capsys):
     row, = summary["rows"]
     assert row["trial"] == "07_cut" and row["samples"] == n
     means = summary["mean_total_rmse_deg"]
-    assert set(means) == {"madgwick_0.041", "madgwick_best", "mekf"}
+    assert set(means) == {"madgwick_0.041", "madgwick_best", "mekf", "mekf_rts"}
     assert means["madgwick_best"] <= means["madgwick_0.041"]
     for name, value in means.items():
         assert value == row[name]["total"] and 0 < value < 30, (name, value)

@@ -20,10 +20,11 @@ def short_campaign(tmp_path_factory, launcher_compiled):
 def test_outputs_are_written_and_well_formed(short_campaign):
     out = short_campaign
     for name in ("rms_table.csv", "rms_table.md", "fig_velocity_rms.png", "fig_radius_rms.png",
-                 "fig_nees.png", "summary.json"):
+                 "fig_nees.png", "fig_smoother_rms.png", "summary.json"):
         assert (out / name).stat().st_size > 0, name
     rows = list(csv.DictReader(open(out / "rms_table.csv")))
-    assert len(rows) == 24 and set(rows[0]) == {"state", "unit", "case", "ekf", "ukf", "paper_ekf", "paper_ukf"}
+    assert len(rows) == 24 and set(rows[0]) == {"state", "unit", "case", "ekf", "ukf", "paper_ekf", "paper_ukf",
+                                                "ekf_rts", "ukf_rts"}
     assert {r["unit"] for r in rows} == {"m/s", "deg", "m"}
     assert all(np.isfinite(float(r[k])) and float(r[k]) > 0 for r in rows for k in ("ekf", "ukf"))
     table = (out / "rms_table.md").read_text()

@@ -25,7 +25,7 @@ def drawn(tmp_path_factory, launcher_compiled):
 
 
 def test_every_figure_names_its_configuration_and_keys_its_lines_outside_the_panels(drawn):
-    assert set(drawn) == {"fig_velocity_rms.png", "fig_radius_rms.png", "fig_nees.png"}
+    assert set(drawn) == {"fig_velocity_rms.png", "fig_radius_rms.png", "fig_nees.png", "fig_smoother_rms.png"}
     for name, (fig, axes, title) in drawn.items():
         assert "filters 'correct'" in title and "2 Monte Carlo runs" in title and "seed 7" in title, name
         (legend,) = fig.legends
@@ -59,7 +59,7 @@ def test_symkf_plot_redraws_the_saved_figures_without_a_filter(tmp_path, launche
     from symkf.scenarios.launcher import campaign
     monkeypatch.setattr(campaign.Campaign, "run", lambda self: pytest.fail("symkf plot ran a campaign"))
     assert main(["plot", str(out), "--out", str(again)]) == 0
-    for name in ("fig_velocity_rms.png", "fig_radius_rms.png", "fig_nees.png"):
+    for name in ("fig_velocity_rms.png", "fig_radius_rms.png", "fig_nees.png", "fig_smoother_rms.png"):
         assert (again / name).read_bytes() == (out / name).read_bytes(), name
     capsys.readouterr()
     assert main(["plot", str(tmp_path / "nothing")]) == 1
