@@ -124,7 +124,7 @@ class FilterState:
         """Chi-square innovation gate: an update whose y^T S^-1 y exceeds the ``probability``
         quantile of chi2(k) (k = used components), or ``threshold``, is skipped (state unchanged,
         status SYMKF_GATED). Neither given: no gate (a filter's default gate is
-        :data:`DEFAULT_GATE_PROBABILITY`, see :class:`Filter`)."""
+        :data:`~symkf.runtime.contract.DEFAULT_GATE_PROBABILITY`, see :class:`~symkf.runtime.filters.Filter`)."""
         buffers = self._measurement(measurement)
         if "gate" not in buffers:
             raise ValueError(f"gate: filter '{self.family}' has no innovation gate")

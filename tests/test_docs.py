@@ -21,7 +21,7 @@ DOCS = ROOT / "docs"
 ROOMS = ("models", "codegen", "runtime", "scenarios")
 #: The pages whose Python blocks run, in this order, in one folder (later pages use earlier files).
 RUN_ORDER = ("docs/getting-started.md", "README.md", "docs/guide/model-authoring.md", "docs/guide/filter-api.md",
-             "docs/guide/campaigns.md")
+             "docs/guide/campaigns.md", "docs/guide/smoothing.md")
 ROLE = re.compile(r":(func|class|meth|data|mod|attr):`~?([\w.]+)`")
 DOTTED = re.compile(r"\bsymkf(?:\.\w+)+")
 
