@@ -137,10 +137,8 @@ class Model:
     state_offset: list[float] = field(default_factory=list)
     #: True for the model codegen/scaling.py derives: its states are the scaled x~.
     scaled_state: bool = False
-    #: The exact discrete step, if the model has one (:meth:`set_discrete_step`): (dt, x_{k+1}).
-    discrete_step: tuple | None = None
-    #: The model file's module-level UPPER_CASE numbers, as executed for this build: [(name, value,
-    #: source comment)] (filled by :func:`symkf.models.get_model`; the header's named constants).
+    discrete_step: tuple | None = None      #: the exact discrete step (:meth:`set_discrete_step`), if any
+    #: The model file's UPPER_CASE numbers as executed: [(name, value, comment)] (the header's named constants).
     constants: list[tuple[str, float | list[float], str]] = field(default_factory=list)
     #: Parameters the filters estimate as states (models/estimation.py ``estimate``): name -> record.
     estimated: dict = field(default_factory=dict)

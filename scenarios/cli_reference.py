@@ -52,6 +52,16 @@ FAMILY_GUIDE: dict[str, FamilyGuide] = {
         "angle outputs averaged on the circle; any model",
         "n states in the model's units", "n x n covariance of x (each state's unit squared)", _KALMAN_Q,
         "2n + 1 evaluations of f_d and of h, two n x n Cholesky factors"),
+    "srekf": FamilyGuide(
+        "srekf", "square-root EKF (array form): the lower Cholesky factor L of P carried, predicted by a QR "
+        "of [F L, sqrt(Q_d)], updated by triangularising the pre-array; the EKF's numbers; any model",
+        "n states in the model's units", "n x n covariance of x, given and read as P (Filter.factor reads L)",
+        _KALMAN_Q, "two QR factorisations of (n + m) x (2n + m) arrays"),
+    "srukf": FamilyGuide(
+        "srukf", "square-root UKF (Van der Merwe & Wan 2001): L carried, QR of the weighted sigma-point "
+        "deviations and rank-one Cholesky updates / downdates; the UKF's numbers, a semi-definite P0 accepted",
+        "n states in the model's units", "n x n covariance of x, given and read as P (Filter.factor reads L)",
+        _KALMAN_Q, "2n + 1 evaluations of f_d and of h, one QR and m + 1 rank-one updates"),
     "cd_ekf": FamilyGuide(
         "cd_ekf", "continuous-discrete EKF: x and P integrated together by RK4 (P' = A P + P A^T + Q), "
         "discrete updates at each sensor's rate; any model",

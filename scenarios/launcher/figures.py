@@ -129,8 +129,8 @@ def plot_nees(results: list[CaseResult], path: Path, config: str) -> None:
 
 
 def plot_smoother_rms(results: list, state: str, ylabel: str, path: Path, config: str) -> None:
-    """RMS(t) of one state, each filter (thin, dashed) beside its fixed-interval RTS smoothing
-    (solid, same colour): what the backward pass buys over the filter at every time."""
+    """RMS(t) of one state, each filter (drawn as in the other figures) beside its fixed-interval
+    RTS smoothing (thin solid, same colour): what the backward pass buys at every time."""
     index = STATE_NAMES.index(state)
     plt = _pyplot()
     fig, axes, placed = _panels(plt, results)
@@ -138,10 +138,10 @@ def plot_smoother_rms(results: list, state: str, ylabel: str, path: Path, config
         ax = placed[result.case.label]
         for family in ("ukf", "ekf"):
             color = STYLE[family]["color"]
-            ax.semilogy(result.times, result.rms_in_table_units(family)[:, index], ls="--", lw=1.0, color=color,
-                        label=f"{family.upper()} filter", zorder=2)
-            ax.semilogy(result.times, result.rms_in_table_units(f"{family}_rts")[:, index], ls="-", lw=1.6,
-                        color=color, alpha=0.85, label=f"{family.upper()} + RTS smoother", zorder=3)
+            ax.semilogy(result.times, result.rms_in_table_units(family)[:, index], label=family.upper(),
+                        markevery=max(1, len(result.times) // 25), **STYLE[family])
+            ax.semilogy(result.times, result.rms_in_table_units(f"{family}_rts")[:, index], ls="-", lw=1.2,
+                        color=color, alpha=0.9, label=f"{family.upper()} + RTS smoother", zorder=4)
         ax.set_title(f"{result.case.label} initial error", fontsize=10)
         _mark_events(ax, result.times[-1])
         ax.set_ylabel(ylabel)

@@ -43,8 +43,8 @@ def record():
 
 def test_iterated_compiled_equals_reference_and_moves_the_estimate(builds):
     x0, P0, Q, steps = record()
-    f = Filter(builds["iterated"], "ekf", x0, P0, Q)
-    plain = Filter(builds["plain"], "ekf", x0, P0, Q)
+    f = Filter(builds["iterated"], "ekf", x0, P0, Q, t0=10.0, gate="none")
+    plain = Filter(builds["plain"], "ekf", x0, P0, Q, t0=10.0, gate="none")
     ref = ReferenceFilter(launcher_ekf(), "ekf", x0, P0, Q, ekf_iterations=4)
     for t, dt, z, q, _ in steps:
         f.step(t, dt, z, "radar", q=q)
@@ -58,7 +58,7 @@ def test_iterated_compiled_equals_reference_and_moves_the_estimate(builds):
 
 def test_a_tolerance_never_met_is_the_plain_ekf(builds):
     x0, P0, Q, steps = record()
-    f, g = Filter(builds["stopped"], "ekf", x0, P0, Q), Filter(builds["plain"], "ekf", x0, P0, Q)
+    f, g = (Filter(builds[k], "ekf", x0, P0, Q, t0=10.0, gate="none") for k in ("stopped", "plain"))
     for t, dt, z, q, _ in steps:
         f.step(t, dt, z, "radar", q=q)
         g.step(t, dt, z, "radar", q=q)

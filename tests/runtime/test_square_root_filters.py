@@ -68,7 +68,8 @@ def cases():
 
 
 def make(case, family, compiled=None):
-    return Filter(compiled or case["compiled"], family, case["x0"], case["P0"], case["Q"])
+    return Filter(compiled or case["compiled"], family, case["x0"], case["P0"], case["Q"],
+                  t0=case["record"][0][0], gate="none")      # the record's start; the references have no gate
 
 
 def step_all(case, f, steps=None):
@@ -191,16 +192,16 @@ def test_singular_P0_and_negative_kappa(cases):
     P0 = case["P0"].copy()
     P0[5, 5] = 0.0
     with pytest.raises(SymkfError, match="NOT_PD"):
-        step_all(case, Filter(case["compiled"], "ukf", case["x0"], P0, case["Q"]), 1)
-    f = Filter(case["compiled"], "srukf", case["x0"], P0, case["Q"])
+        step_all(case, Filter(case["compiled"], "ukf", case["x0"], P0, case["Q"], t0=case["record"][0][0], gate="none"), 1)
+    f = Filter(case["compiled"], "srukf", case["x0"], P0, case["Q"], t0=case["record"][0][0], gate="none")
     assert f.factor[5, 5] == 0.0
     step_all(case, f, 3)
     P0[5, 5] = 1e-24
-    g = Filter(case["compiled"], "ukf", case["x0"], P0, case["Q"])
+    g = Filter(case["compiled"], "ukf", case["x0"], P0, case["Q"], t0=case["record"][0][0], gate="none")
     step_all(case, g, 3)
     assert sigma_error(f.x, g.x, g.P) < 1e-6
-    a = Filter(case["compiled"], "srukf", case["x0"], case["P0"], case["Q"], kappa=-1.0)
-    b = Filter(case["compiled"], "ukf", case["x0"], case["P0"], case["Q"], kappa=-1.0)
+    a, b = (Filter(case["compiled"], family, case["x0"], case["P0"], case["Q"], kappa=-1.0, t0=case["record"][0][0])
+            for family in ("srukf", "ukf"))
     for t, dt, _, _ in case["record"][:3]:
         a.predict(t, dt)
         b.predict(t, dt)
