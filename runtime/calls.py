@@ -80,23 +80,28 @@ def reads_u(filt, kernel: str) -> bool:
     return any(name == "u" for name, _ in info.inputs) and "u" not in info.ignores
 
 
+def _input_given(filt) -> bool:
+    """Whether a call has given u yet (every step the C fast path took did: it declines a None u)."""
+    return filt._u_given or filt.fast_calls > 0
+
+
 def u_input(filt, u, call: str, reads_u: bool = True) -> np.ndarray | None:
     """The checked input ``u`` of a ``call`` (None: keep the held one, when the caller said
-    ``u="hold"`` or the call's kernel does not read u). A model with inputs needs u on every call
-    that propagates (predict, step, run): a forgotten u would otherwise propagate with zeros or a
-    stale sample. An update (``reads_u`` False) evaluates h at the end of the interval the last
-    call propagated over, with that call's input; before any input was given it needs u too."""
+    ``u="hold"`` or the call's kernel does not read u, ``reads_u`` False). A model with inputs
+    needs u on every call that propagates (predict, step, run): a forgotten u would otherwise
+    propagate with zeros or a stale sample. An update evaluates h at the end of the interval the
+    last call propagated over, with that call's input; before any input was given it needs u too."""
     if not has_inputs(filt):
         if u is not None:
             raise ValueError(f"u: model '{filt.model['name']}' has no inputs")
         return None
     if isinstance(u, str) and u == HOLD:
-        if not (filt._u_given or filt.fast_calls):
+        if not _input_given(filt):
             raise ValueError(f"u: '{HOLD}' keeps the last input, but model '{filt.model['name']}' has been given "
                              "none yet; pass u=... on this call")
         return None
     if u is None:
-        if not reads_u or (call == "update" and (filt._u_given or filt.fast_calls)):   # fast steps all gave u
+        if not reads_u or (call == "update" and _input_given(filt)):
             return None
         names = [f"{v['name']} [{v.get('unit', '-')}]" for v in filt.model["inputs"]]
         raise ValueError(f"u: model '{filt.model['name']}' has inputs {names}; {call} needs u=... on every call "

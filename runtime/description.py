@@ -9,8 +9,6 @@ from __future__ import annotations
 
 import numpy as np
 
-#: Families whose covariance is that of an error state on the quaternions' manifold.
-MANIFOLD_FAMILIES = ("mekf", "mukf", "sukf", "aukf")
 #: The quaternion error of each manifold chart (codegen option ``manifold_chart``).
 CHART_MEANING = {
     "rotation_vector": "rotation vector dtheta [rad] (q = q_hat * Exp(dtheta))",
@@ -31,13 +29,12 @@ def config_value(filt, key: str, default=None):
 
 def chart_of(filt) -> str:
     """What ``filt.P`` (and Q) are the covariance of."""
-    quaternions = filt.model.get("quaternions", [])
-    if filt.family not in MANIFOLD_FAMILIES or not quaternions:
-        if "P" not in filt._buffers:
-            return "none (this filter carries no covariance)"
+    if "P" not in filt._buffers:
+        return "none (this filter carries no covariance)"
+    quaternions, n = filt.model.get("quaternions", []), filt._buffers["P"].shape[0]
+    if n == filt.n:                      # a plain family (also one opted in on a quaternion state)
         return f"the state x itself ({filt.n} x {filt.n}, in the states' units)"
     chart = config_value(filt, "manifold_chart", "rotation_vector")
-    n = filt.model.get("error_state_dim", filt.n)
     names = ", ".join(q["name"] for q in quaternions)
     return (f"the error state ({n} x {n}): each quaternion ({names}) as a 3-vector {CHART_MEANING.get(chart, chart)}, "
             "the other states in their units")

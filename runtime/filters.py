@@ -256,11 +256,7 @@ class Filter(FilterState):
         """
         name = calls.measurement_name(self, measurement, "step", "run")
         times = contract.run_times(times)
-        start = self.t
-        if times.size and (times[0] < start or contract.is_on_clock(times[0], start)):
-            start = contract.on_clock(times[0], start, 0.0, "run (its first time)")   # dt = 0: an update first
-        per_step = {"t": np.concatenate([[start], times[:-1]]), "dt": np.diff(times, prepend=start)}
-        runs.warn_long_first_step(self, times, per_step["dt"])
+        per_step = runs.steps_from_clock(self, times, "run")
         result = runs.run(self, name, per_step, {"z": z, "q": q, "mask": mask}, u, nan, refused)
         return smoothing.smooth(self, result) if smooth else result
 

@@ -21,7 +21,7 @@ from symkf.codegen.c_backend.multi_loop import multi_arguments
 from symkf.codegen.spec import STATUS_GATED, STATUS_OK, Arg
 from . import contract, innovations
 from .buffers import buffer
-from .runs import REFUSED_POLICIES, RunRefused, RunResult, series, warn_long_first_step
+from .runs import REFUSED_POLICIES, RunRefused, RunResult, series, steps_from_clock
 
 
 @dataclass
@@ -80,11 +80,7 @@ def run_multi(filt, times, z: dict, q: dict | None = None, mask: dict | None = N
             raise ValueError(f"{name}: measurement(s) {sorted(set(given) - set(z))} have no z")
     times = contract.run_times(times)
     n_steps = times.size
-    start = filt.t
-    if times.size and (times[0] < start or contract.is_on_clock(times[0], start)):
-        start = contract.on_clock(times[0], start, 0.0, "run_multi (its first time)")   # dt = 0: updates first
-    per_step = {"t": np.concatenate([[start], times[:-1]]), "dt": np.diff(times, prepend=start)}
-    warn_long_first_step(filt, times, per_step["dt"])
+    per_step = steps_from_clock(filt, times, "run_multi")
     records = {m: _record(filt, m, n_steps, z, q or {}, mask or {}, u, nan) for m in spec.update}
     per_step["u"] = next(iter(records.values())).get("u")
     kernels = {k: _described(filt._backend.kernels[k]) for k in [spec.predict, *spec.update.values()]}

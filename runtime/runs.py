@@ -155,6 +155,18 @@ class RunRefused(SymkfError):
 LONG_FIRST_STEP = 10.0
 
 
+def steps_from_clock(filt, times: np.ndarray, call: str) -> dict[str, np.ndarray]:
+    """The per-step t and dt of a record of ``times`` (checked by ``contract.run_times``) on the
+    filter's clock: step 0 from the filter's time to times[0] (dt = 0, an update first, when
+    times[0] is that time; a time before it is refused), then from each time to the next."""
+    start = filt.t
+    if times.size and (times[0] < start or contract.is_on_clock(times[0], start)):
+        start = contract.on_clock(times[0], start, 0.0, f"{call} (its first time)")
+    per_step = {"t": np.concatenate([[start], times[:-1]]), "dt": np.diff(times, prepend=start)}
+    warn_long_first_step(filt, times, per_step["dt"])
+    return per_step
+
+
 def warn_long_first_step(filt, times: np.ndarray, dt: np.ndarray) -> None:
     if times.size > 1 and dt[0] > LONG_FIRST_STEP * float(np.median(np.diff(times))):
         warnings.warn(f"run: the first step propagates {dt[0]:.6g} s, from the filter's time {filt.t!r} to times[0] = "

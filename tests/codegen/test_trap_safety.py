@@ -20,7 +20,7 @@ import pytest
 from symkf.runtime import load
 from symkf.runtime.backends import BoundCall, CompiledBackend
 
-pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="feenableexcept is glibc's")
+pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="needs Linux with glibc: the trap tests enable floating-point exceptions with feenableexcept")
 
 HARNESS = r"""
 #define _GNU_SOURCE
@@ -151,6 +151,28 @@ class Recorder:
                     args.append(inputs[name])
             outputs = [hist[n][k] if n in info.carried else None for n, _ in info.outputs[:-1]]
             self.calls.append((info.name, args, outputs if status[k] == 0 else None, int(status[k])))
+
+
+def assert_harness_reproduces(nominal, statuses, outputs) -> None:
+    """The C harness reproduces the Python side exactly (same code, same inputs): codes and outputs."""
+    for i, ((kernel, _, expected, status), got_status, got) in enumerate(zip(nominal, statuses, outputs)):
+        assert got_status == status, f"call {i}: {kernel}"
+        for e, g in zip(expected or [], got):
+            if e is not None:
+                np.testing.assert_array_equal(g, e, err_msg=f"call {i}: {kernel}")
+
+
+def assert_masked_updates_keep_the_state(nominal, extra, statuses, outputs) -> int:
+    """All-masked updates among the edge cases leave x and P exactly as they were; their number."""
+    masked = 0
+    for (kernel, inputs, _, label), status, got in zip(extra, statuses[len(nominal):], outputs[len(nominal):]):
+        names = KERNEL_INPUTS[kernel]
+        if "update" in kernel and label.startswith("mask="):
+            masked += 1
+            assert status == 0, kernel
+            np.testing.assert_array_equal(got[0], inputs[names.index("x")])
+            np.testing.assert_array_equal(got[1], inputs[names.index("P")])
+    return masked
 
 
 def edge_cases(calls) -> list:
@@ -289,21 +311,8 @@ def test_kernels_do_not_trap_on_nominal_flights_and_edge_cases(model, monkeypatc
             extra.append((name, [np.zeros(shape[0] * shape[1]) for _, shape in kernels[name].inputs], None, None))
     assert extra, "no edge cases derived"
     statuses, _, outputs = replay(tmp_path, compiled, nominal + extra)
-    # the harness reproduces the Python side exactly (same code, same inputs)
-    for i, ((kernel, _, expected, status), got_status, got) in enumerate(zip(nominal, statuses, outputs)):
-        assert got_status == status, f"call {i}: {kernel}"
-        for e, g in zip(expected or [], got):
-            if e is not None:
-                np.testing.assert_array_equal(g, e, err_msg=f"call {i}: {kernel}")
-    # all-masked updates leave x and P exactly as they were
-    masked = 0
-    for (kernel, inputs, _, label), status, got in zip(extra, statuses[len(nominal):], outputs[len(nominal):]):
-        names = KERNEL_INPUTS[kernel]
-        if "update" in kernel and label.startswith("mask="):
-            masked += 1
-            assert status == 0, kernel
-            np.testing.assert_array_equal(got[0], inputs[names.index("x")])
-            np.testing.assert_array_equal(got[1], inputs[names.index("P")])
+    assert_harness_reproduces(nominal, statuses, outputs)
+    masked = assert_masked_updates_keep_the_state(nominal, extra, statuses, outputs)
     assert masked or model != "geo_satellite"       # geo's loop calls the update kernels directly
 
 
