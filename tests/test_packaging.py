@@ -19,7 +19,8 @@ DATA_SUFFIXES = (".c", ".h")
 
 def _needs(module: str) -> None:
     if importlib.util.find_spec(module) is None:
-        pytest.skip(f"'{module}' is not installed: cannot build a wheel without the build tooling")
+        pytest.skip(f"'{module}' is not installed: cannot build a wheel without the build tooling "
+                    f"(pip install {module})")
 
 
 def _expected() -> set[str]:

@@ -19,7 +19,7 @@ def _mount(folder, size: str) -> None:
     folder.mkdir(parents=True, exist_ok=True)
     proc = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(folder)], capture_output=True)
     if proc.returncode != 0:
-        pytest.skip(f"cannot mount a tmpfs here ({proc.stderr.decode().strip() or 'not root'})")
+        pytest.skip(f"needs root to mount a small tmpfs as a full disk ({proc.stderr.decode().strip() or 'not root'})")
 
 
 @pytest.fixture

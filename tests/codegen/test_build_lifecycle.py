@@ -189,7 +189,7 @@ def test_killed_build_leaves_no_compiler_running(tmp_path, private_build, starte
     """The guard shell learns of the build's death by PR_SET_PDEATHSIG, set by util-linux's
     setpriv where it has --pdeathsig (the compiler then starts by vfork), else in the child."""
     if started_by == "setpriv" and not compiler_pool._pdeathsig_wrapper():
-        pytest.skip("no setpriv with --pdeathsig here")
+        pytest.skip("util-linux's setpriv with --pdeathsig is not on this machine (the preexec_fn case runs instead)")
     fallback = "compiler_pool._pdeathsig_wrapper = lambda: (); " if started_by == "preexec_fn" else ""
     code = f"from symkf.codegen import build_model, compiler_pool; {fallback}build_model('launcher', rk4_substeps=3)"
     proc = subprocess.Popen([sys.executable, "-c", code])

@@ -13,7 +13,7 @@ from symkf.scenarios.launcher.record import radar_record, write_radar_record
 EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "flight"
 
 
-@pytest.mark.skipif(not EXAMPLE.is_dir(), reason="examples/flight/ is not in this installation")
+@pytest.mark.skipif(not EXAMPLE.is_dir(), reason="examples/flight/ ships with the source checkout, not the installed package")
 def test_flight_example_matches_python(tmp_path):
     compiled = load("launcher", backend="compiled")
     bundle = compiled.backend.library_path.parent

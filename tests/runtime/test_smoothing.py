@@ -86,7 +86,7 @@ def test_unscented_smoother_equals_numpy_sarkka_form(radar):
 
 def test_unscented_smoother_equals_filterpy_rts_smoother():
     """FilterPy's UKF RTS test case (Julier sigma points, kappa = 0) as a symkf user model."""
-    kalman = pytest.importorskip("filterpy.kalman", reason='FilterPy is the oracle: pip install -e ".[bench]"')
+    kalman = pytest.importorskip("filterpy.kalman", reason='FilterPy is the oracle: pip install -e ".[test]"')
     z, _ = record(seed=200, accelerate=False)
     compiled = load(MODEL, backend="compiled")
     run = compiled.ukf(X0, P0, Q, kappa=0.0, R={"range": np.array([[10.0]])}).run_steps(
