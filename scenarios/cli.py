@@ -106,8 +106,13 @@ def _cmd_build(args) -> int:
 
 
 def _cmd_plot(args) -> int:
-    from symkf.scenarios.launcher import series
-    for path in series.redraw(args.folder, args.out):
+    from symkf.scenarios import plot
+    try:
+        paths = plot.redraw(args.folder, args.out)
+    except (FileNotFoundError, ValueError) as exc:
+        print(f"symkf plot: {exc}", file=sys.stderr)
+        return 1
+    for path in paths:
         print(f"wrote {path}")
     return 0
 
@@ -162,10 +167,11 @@ def main(argv: list[str] | None = None) -> int:
                          else print(cli_reference.options_text()))
     families = sub.add_parser("families", help="list the filter families and what x0, P0 and Q mean for each")
     families.set_defaults(handler=lambda a: print(cli_reference.families_text()))
-    plot = sub.add_parser("plot", help="redraw the figures of a saved launcher comparison (no filter is run)",
-                          description="Redraw fig_velocity_rms.png, fig_radius_rms.png, fig_nees.png and fig_smoother_rms.png from the "
-                                      "series.npz that `symkf compare launcher` saved in FOLDER.")
-    plot.add_argument("folder", type=Path, help="a folder written by symkf compare launcher (e.g. results/launcher)")
+    plot = sub.add_parser("plot", help="redraw the figures of a saved comparison (no filter is run)",
+                          description="Redraw the figures of every comparison saved in FOLDER (or one folder down) from "
+                                      "the series.nc (or series.npz) that `symkf compare <name>` wrote there: "
+                                      "launcher, attitude, geo, marg.")
+    plot.add_argument("folder", type=Path, help="a folder written by symkf compare (e.g. results/launcher, results/attitude)")
     plot.add_argument("--out", type=Path, help="where to write the figures (default: FOLDER)")
     plot.set_defaults(handler=_cmd_plot)
     guidance = sub.add_parser("design-guidance", help="re-solve the launcher guidance with IPOPT")

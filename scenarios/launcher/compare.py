@@ -4,9 +4,10 @@
 both filters fed the same radar draws, the whole run of each filter in one compiled C call.
 Writes to --out: rms_table.csv (with the smoothers' columns ekf_rts, ukf_rts), rms_table.md,
 fig_velocity_rms.png, fig_radius_rms.png, fig_nees.png, fig_smoother_rms.png (filter vs smoother
-speed RMS(t); scenarios/launcher/figures.py), summary.json, series.npz (the figures' series:
-``symkf plot <out>`` redraws them without running a filter). Tuning and truth:
-scenarios/launcher/campaign.py, truth.py.
+speed RMS(t); scenarios/launcher/figures.py), summary.json (totals and the paper's claims, each
+in a plain sentence: scenarios/launcher/claims.py), series.nc (RMS(t) and NEES(t) per case, filter,
+state and time, and every run's row: scenarios/launcher/series.py; ``symkf plot <out>`` redraws the
+figures from it without running a filter). Tuning and truth: scenarios/launcher/campaign.py, truth.py.
 """
 from __future__ import annotations
 
@@ -19,7 +20,9 @@ from pathlib import Path
 import numpy as np
 
 from symkf.models import launcher as L
+from symkf.scenarios.claims import as_summary, print_claims
 from . import campaign as C
+from . import claims as paper_claims
 from . import figures, series
 from symkf.scenarios.campaign import ProgressBar, add_scheduler_arguments, scheduler_problem
 from .campaign import FILTERS, PRESETS, SMOOTHED, STATE_NAMES, TUNING, Campaign, CaseResult, consistency
@@ -76,23 +79,25 @@ def run(args) -> int:
     progress = None if args.quiet else ProgressBar()
     start = time.perf_counter()
     campaign = Campaign(args.runs, args.seed, rates, args.duration, workers=args.workers, progress=progress,
-                        tuning=tuning, scheduler=args.scheduler, preset=args.filters)
+                        tuning=tuning, scheduler=args.scheduler, preset=args.filters)      # builds if stale
+    built = time.perf_counter() - start
     results = campaign.run()
-    wall = time.perf_counter() - start
+    wall = time.perf_counter() - start - built
     out = Path(args.out or ("results/launcher" if args.filters == "correct" else f"results/launcher-{args.filters}"))
     out.mkdir(parents=True, exist_ok=True)
     rows = table_rows(results)
     write_csv(out / "rms_table.csv", rows)
     (out / "rms_table.md").write_text(f"Filters: {args.filters}\n\n" + markdown_table(results, rows))
-    summary = make_summary(results, args, wall, campaign)
+    checked = paper_claims.claims(results)
+    summary = make_summary(results, args, wall, campaign, checked)
     (out / "summary.json").write_text(json.dumps(summary, indent=1))
     config = figures.configuration(args.filters, args.runs, args.seed)
     figures.plot_rms(results, "V", "Speed error RMS (m/s)", out / "fig_velocity_rms.png", config)
     figures.plot_rms(results, "r", "Radius error RMS (m)", out / "fig_radius_rms.png", config)
     figures.plot_nees(results, out / "fig_nees.png", config)
     figures.plot_smoother_rms(results, "V", "Speed error RMS (m/s)", out / "fig_smoother_rms.png", config)
-    series.save(results, out, config)                     # symkf plot <out> redraws the figures from it
-    written = time.perf_counter() - start - wall
+    saved = series.save(results, out, config, {"preset": args.filters, "runs": args.runs, "seed": args.seed})
+    written = time.perf_counter() - start - built - wall
     if not args.quiet:
         print(f"\nFilters: {args.filters}\n" + markdown_table(results, rows))
         print(f"  mean |log10(ours/paper)| over Table 3's {summary['table3_cells']} cells: "
@@ -101,13 +106,10 @@ def run(args) -> int:
             print(f"  {label}: average NEES inside its 95 % band (outside {C.EVENT_WINDOW_S:g} s after events) "
                   + ", ".join(f"{f.upper()} {_percent(case[f]['fraction_inside_band_outside_event_windows'])}"
                               for f in FILTERS))
-        for claim, value in summary["claims"].items():
-            if isinstance(value, bool):
-                print(f"  {claim}: {value}")
-        print(f"  ukf_le_ekf_every_state: {summary['claims']['ukf_le_ekf_every_state']}")
-        print(f"  smoothed RMS above the filter's in: {summary['claims']['rts_above_filter_cells'] or 'no cell'}")
-        print(f"wrote {out}/ in {wall + written:.1f} s: campaign {wall:.1f} s ({campaign.stats.executor}, "
-              f"{campaign.stats.workers} workers), tables and figures {written:.1f} s")
+        print("The paper's claims, checked on these runs:")
+        print_claims(checked)
+        print(f"wrote {out}/ ({saved.name}) in {built + wall + written:.1f} s: build {built:.1f} s, campaign {wall:.1f} s "
+              f"({campaign.stats.executor}, {campaign.stats.workers} workers), tables and figures {written:.1f} s")
     return 0
 
 
@@ -168,13 +170,6 @@ def markdown_table(results: list[CaseResult], rows: list[dict]) -> str:
 
 
 # ---------------------------------------------------------------------- summary and claims
-def classify(result: CaseResult, family: str, run: int) -> str:
-    """'diverged', 'excursion' or 'ok' for one run (wrapped angle errors, campaign.outcome)."""
-    if run in result.diverged_runs[family]:
-        return "diverged"
-    return "excursion" if run in result.excursion_runs[family] else "ok"
-
-
 def tuning_from_args(args) -> dict:
     """The preset's tuning with the command line's knobs applied (raises ValueError on bad input)."""
     base = PRESETS[args.filters]["tuning"]
@@ -195,7 +190,9 @@ def mean_abs_log10_vs_paper(rows: list[dict]) -> float:
     return float(np.mean([abs(np.log10(row[f] / row[f"paper_{f}"])) for row in rows for f in FILTERS]))
 
 
-def make_summary(results: list[CaseResult], args, wall: float, campaign: Campaign) -> dict:
+def make_summary(results: list[CaseResult], args, wall: float, campaign: Campaign, checked: list) -> dict:
+    """Totals per case and estimate and the checked claims; every run's row is in the series file
+    (series.nc: run_outcome, run_rms, ...), so this file stays small at any run count."""
     cases = {}
     for result in results:
         entry = {}
@@ -207,9 +204,9 @@ def make_summary(results: list[CaseResult], args, wall: float, campaign: Campaig
                 "steps": int(len(result.times) * result.errors[family].runs),
                 "us_per_step_in_run": 1e6 * result.wall_s[family] / (len(result.times) * result.errors[family].runs),
                 "failed_steps": result.failed_steps[family],
-                "diverged_runs": result.diverged_runs[family],
-                "excursion_runs": result.excursion_runs[family],
-                "run_classification": [classify(result, family, run) for run in range(result.errors[family].runs)],
+                "runs": result.errors[family].runs,
+                "diverged_run_count": len(result.diverged_runs[family]),
+                "excursion_run_count": len(result.excursion_runs[family]),
                 "rms_eq11_without_diverged_runs": dict(zip(STATE_NAMES, result.whole_flight(family, True).tolist())),
             }
         cases[result.case.label] = entry
@@ -218,36 +215,6 @@ def make_summary(results: list[CaseResult], args, wall: float, campaign: Campaig
             "filters": campaign.preset, "codegen": campaign.codegen, "units": UNITS,
             "tuning": {k: np.asarray(v).tolist() for k, v in campaign.tuning.items()},
             "mean_abs_log10_vs_paper": mean_abs_log10_vs_paper(rows), "table3_cells": 2 * len(rows),
-            "cases": cases, "claims": claims(results)}
-
-
-#: A gap counts as larger when the median EKF/UKF ratio grows by more than this factor.
-GAP_MARGIN = 1.05
-
-
-def claims(results: list[CaseResult]) -> dict:
-    """The paper's qualitative claims, checked state by state on eq (11)."""
-    by_label = {r.case.label: r for r in results}
-    ratio = {label: r.whole_flight("ekf") / np.maximum(r.whole_flight("ukf"), 1e-300) for label, r in by_label.items()}
-    ukf_better = {label: bool(np.all(r.whole_flight("ukf") <= r.whole_flight("ekf"))) for label, r in by_label.items()}
-    out = {"ukf_le_ekf_every_state": ukf_better, "rts_le_filter_every_cell": smoother_exceptions(results) == [],
-           "rts_above_filter_cells": smoother_exceptions(results),
-           "ekf_over_ukf_ratio": {label: dict(zip(STATE_NAMES, np.round(v, 3).tolist())) for label, v in ratio.items()}}
-    for rate in {r.case.rate_hz for r in results}:
-        small, large = by_label.get(f"{rate}Hz small"), by_label.get(f"{rate}Hz large")
-        if small and large:
-            out[f"gap_larger_for_large_error_{rate}Hz"] = bool(
-                np.median(ratio[large.case.label]) > GAP_MARGIN * np.median(ratio[small.case.label]))
-    for init in ("small", "large"):
-        fast, slow = by_label.get(f"20Hz {init}"), by_label.get(f"10Hz {init}")
-        if fast and slow:
-            out[f"gap_larger_at_10Hz_{init}"] = bool(
-                np.median(ratio[slow.case.label]) > GAP_MARGIN * np.median(ratio[fast.case.label]))
-    return out
-
-
-def smoother_exceptions(results: list[CaseResult]) -> list[str]:
-    """The cells (case, state, filter) whose smoothed whole-flight RMS exceeds the filter's."""
-    return [f"{r.case.label} {state} {family.upper()}" for r in results for family in FILTERS
-            for state, smoothed, filtered in zip(STATE_NAMES, r.whole_flight(f"{family}_rts"), r.whole_flight(family))
-            if smoothed > filtered]
+            "cases": cases, "claims": as_summary(checked),
+            "ekf_over_ukf_ratio": {r.case.label: dict(zip(STATE_NAMES, np.round(paper_claims.ratio(r), 3).tolist()))
+                                   for r in results}}

@@ -50,17 +50,29 @@ def test_the_rms_figures_put_the_papers_table_3_beside_ours(drawn):
     assert any("whole-flight RMS" in text.get_text() for text in small.texts)
 
 
-def test_symkf_plot_redraws_the_saved_figures_without_a_filter(tmp_path, launcher_compiled, capsys, monkeypatch):
-    """`symkf plot <folder>` redraws the three figures from series.npz alone: the same PNG bytes as
-    the comparison wrote (no filter runs: the campaign is made unavailable first)."""
+@pytest.mark.parametrize("netcdf", [True, False], ids=["series.nc", "series.npz"])
+def test_symkf_plot_redraws_the_saved_figures_without_a_filter(tmp_path, launcher_compiled, capsys, monkeypatch, netcdf):
+    """`symkf plot <folder>` redraws the four figures from the series file alone (netCDF with the
+    `results` extra, else .npz): the same PNG bytes as the comparison wrote (no filter runs: the
+    campaign and the filters' runs are made unavailable first)."""
+    from symkf.scenarios import results
+    if netcdf:
+        pytest.importorskip("xarray")
+        pytest.importorskip("h5netcdf")
+    else:
+        monkeypatch.setattr(results, "netcdf_available", lambda: False)
     out, again = tmp_path / "run", tmp_path / "again"
     assert main(["compare", "launcher", "--runs", "2", "--rates", "20", "--duration", "60", "--seed", "3",
                  "--out", str(out), "--quiet"]) == 0
+    assert sorted(p.name for p in out.glob("series.*")) == ["series.nc" if netcdf else "series.npz"]
+    from symkf.runtime import filters
     from symkf.scenarios.launcher import campaign
     monkeypatch.setattr(campaign.Campaign, "run", lambda self: pytest.fail("symkf plot ran a campaign"))
+    monkeypatch.setattr(campaign, "run_chunk", lambda *a: pytest.fail("symkf plot ran a filter"))
+    monkeypatch.setattr(filters.Filter, "run", lambda *a, **k: pytest.fail("symkf plot ran a filter"))
     assert main(["plot", str(out), "--out", str(again)]) == 0
     for name in ("fig_velocity_rms.png", "fig_radius_rms.png", "fig_nees.png", "fig_smoother_rms.png"):
         assert (again / name).read_bytes() == (out / name).read_bytes(), name
     capsys.readouterr()
     assert main(["plot", str(tmp_path / "nothing")]) == 1
-    assert "no saved series; `symkf compare launcher --out" in capsys.readouterr().err
+    assert "no saved series" in capsys.readouterr().err

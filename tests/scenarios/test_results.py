@@ -1,0 +1,55 @@
+"""The saved series of a comparison (scenarios/results.py): netCDF with dimensions and units when
+the `results` extra is installed, else .npz with the same content, said once on stderr; loaded back
+to the same numbers either way."""
+import numpy as np
+import pytest
+
+from symkf.scenarios import results as R
+
+
+def _series() -> R.Series:
+    times, steps = R.padded([np.arange(5) * 0.1, np.arange(3) * 0.2])
+    return R.Series("demo", {
+        "case": R.var(["case"], ["fast", "slow"]),
+        "steps": R.var(["case"], steps, "1"),
+        "time": R.var(["case", "step"], times, "s", "time"),
+        "rms": R.var(["case", "step"], np.sqrt(times + 1.0), "m", "RMS error"),
+        "ok": R.var(["case"], [True, False], "1"),
+    }, {"config": "two cases", "runs": 3, "tuning": {"q": [1.0, 2.0]}})
+
+
+def _check(loaded: R.Series) -> None:
+    assert loaded.comparison == "demo" and loaded.labels("case") == ["fast", "slow"]
+    assert loaded.variables["time"].dims == ("case", "step") and loaded.variables["rms"].attrs["units"] == "m"
+    np.testing.assert_array_equal(R.trimmed(loaded["time"][1], loaded["steps"][1]), np.arange(3) * 0.2)
+    assert np.isnan(loaded["time"][1, 3:]).all()
+    assert loaded["rms"][0, 4] == np.sqrt(1.4) and loaded["ok"].tolist() == [True, False]
+    assert R.attribute(loaded, "runs") == 3 and R.attribute(loaded, "tuning") == {"q": [1.0, 2.0]}
+
+
+def test_netcdf_round_trip_is_exact_and_self_describing(tmp_path):
+    xr = pytest.importorskip("xarray")
+    pytest.importorskip("h5netcdf")
+    path = R.save(_series(), tmp_path)
+    assert path.name == "series.nc"
+    with xr.open_dataset(path) as data:                     # any netCDF reader: names, dims, units
+        assert data["rms"].dims == ("case", "step") and data["rms"].attrs["units"] == "m"
+        assert data.attrs["comparison"] == "demo"
+    _check(R.load(tmp_path))
+
+
+def test_without_the_extra_npz_is_written_and_stderr_says_once_how_to_get_netcdf(tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(R, "netcdf_available", lambda: False)
+    monkeypatch.setattr(R, "_said_fallback", False)
+    assert R.save(_series(), tmp_path / "a").name == "series.npz"
+    R.save(_series(), tmp_path / "b")
+    err = capsys.readouterr().err
+    assert err.count("pip install 'symkf[results]'") == 1
+    _check(R.load(tmp_path / "a"))
+
+
+def test_a_folder_without_series_is_refused_by_name(tmp_path):
+    with pytest.raises(FileNotFoundError, match="no saved series"):
+        R.load(tmp_path)
+    with pytest.raises(ValueError, match="dimensions"):
+        R.var(["a"], np.zeros((2, 2)))
