@@ -6,6 +6,8 @@ import numpy as np
 import pytest
 
 from symkf.models import attitude as att
+from symkf.scenarios import results
+from symkf.scenarios.cli import main
 from symkf.scenarios.attitude import bench as bench_attitude, compare as compare_attitude
 
 
@@ -26,10 +28,19 @@ def test_truth_record_is_consistent():
     assert np.allclose(offset.mean(axis=0), -4e-3, atol=3 * att.GYRO_ANGLE_RANDOM_WALK / np.sqrt(0.25 * 240) + 1e-5)
 
 
-def test_compare_writes_figures_and_summary(tmp_path):
+def test_compare_writes_figures_and_summary(tmp_path, monkeypatch):
     args = parse(compare_attitude, ["--scenario", "I", "--runs", "2", "--duration", "300", "--out", str(tmp_path)])
     assert compare_attitude.run(args) == 0
     out = tmp_path / "scenario_I"
+    series = results.load(out)                  # the figures' series and every run's row
+    assert series.comparison == "attitude" and series["attitude_error_rms"].shape == (2, 1200)
+    assert series.variables["attitude_error_rms"].attrs["units"] == "deg"
+    assert series["run_failed_steps"].tolist() == [[0, 0], [0, 0]] and series["run_converged"].all()
+    # symkf plot redraws both figures from the series alone, byte for byte, without a filter
+    monkeypatch.setattr(compare_attitude, "one_run", lambda *a: pytest.fail("symkf plot ran a filter"))
+    assert main(["plot", str(tmp_path), "--out", str(tmp_path / "again")]) == 0
+    for name in ("fig_attitude_error.png", "fig_bias_error.png"):
+        assert (tmp_path / "again" / "scenario_I" / name).read_bytes() == (out / name).read_bytes()
     assert (out / "fig_attitude_error.png").stat().st_size > 10_000
     assert (out / "fig_bias_error.png").stat().st_size > 10_000
     summary = json.loads((out / "summary.json").read_text())
@@ -40,6 +51,8 @@ def test_compare_writes_figures_and_summary(tmp_path):
         assert metrics["attitude_3sigma_deg"] >= 3 * metrics["attitude_rms_deg"] / np.sqrt(3) - 1e-12
     assert np.isfinite(summary["ukf_improvement_percent"])
     assert summary["paper_claims"]["ukf_about_30_percent_better"]["claimed_percent"] == 30.0
+    rms = np.sqrt(np.mean(series["attitude_error_rms"][:, 600:] ** 2, axis=1))     # the last half, over runs
+    assert rms.tolist() == pytest.approx([summary["filters"][f]["attitude_rms_deg"] for f in ("mekf", "ukf")], rel=1e-12)
 
 
 def test_scenario_two_reports_the_literal_bias(tmp_path):
