@@ -5,6 +5,8 @@ import json
 import numpy as np
 import pytest
 
+from symkf.scenarios import results
+from symkf.scenarios.cli import main
 from symkf.scenarios.geo import compare as compare_geo
 
 #: Simulated seconds per case: long enough for the ~100 s PID time constants to settle.
@@ -58,9 +60,15 @@ def test_case4_ekf_controls_with_gyros_A_C_and_all_failed(cases):
     assert verdict(cases, 4, "all_failed_matches_no_failure")
 
 
-def test_compare_command_writes_summary_and_figure(tmp_path):
+def test_compare_command_writes_summary_and_figure(tmp_path, monkeypatch):
     args = argparse.Namespace(case="2", duration=100.0, out=str(tmp_path))
     assert compare_geo.run(args) == 0
+    saved = results.load(tmp_path)                # every loop's truth, estimate and sigma per tick
+    assert saved.comparison == "geo" and saved["truth"].shape == (4, 801, 17)
+    assert saved.labels("state_units")[6] == "rad/s" and saved["steps"].tolist() == [801] * 4
+    monkeypatch.setattr(compare_geo, "simulate", lambda *a: pytest.fail("symkf plot ran a closed loop"))
+    assert main(["plot", str(tmp_path), "--out", str(tmp_path / "again")]) == 0
+    assert (tmp_path / "again" / "case2.png").read_bytes() == (tmp_path / "case2.png").read_bytes()
     summary = json.loads((tmp_path / "summary.json").read_text())
     runs = summary["cases"]["case2"]["runs"]
     assert set(runs) == {"bias_off_fail_none", "bias_off_fail_B", "bias_on_fail_none", "bias_on_fail_B"}
