@@ -151,13 +151,16 @@ class UnitCompiler:
     ``<key>.sum``, the SHA-256 of its files, written last: one whose copies do not match their sums
     (damaged, replaced, half written) is recompiled, never linked."""
 
-    def __init__(self, directory: Path, cc: str, config: CodegenConfig, header: str, jobs: int | None = None):
+    def __init__(self, directory: Path, cc: str, config: CodegenConfig, header: str, jobs: int | None = None,
+                 progress=None):
         self.directory, self.cc, self.config, self.header = directory, cc, config, header
+        self.progress = progress             # a codegen.progress.BuildProgress, or None
         self.stack = measures_stack(cc)
         self.suffixes = (".o", ".ci") if self.stack else (".o",)
         self.cache = check_folder(directory.parent / ".objects", create=True)     # this user's, or refused
         self.jobs = max(1, jobs or os.cpu_count() or 1)
-        self.pool = CompilerPool(directory, max(1, self.jobs - 1), cores=self.jobs)     # this process is generating
+        self.pool = CompilerPool(directory, max(1, self.jobs - 1), cores=self.jobs,     # this process is generating
+                                 on_finished=progress.units if progress else None)
         self.units: dict[str, _Unit] = {}
 
     def __enter__(self) -> "UnitCompiler":
@@ -214,6 +217,8 @@ class UnitCompiler:
         for file in waiting:
             self._start(file, (self.directory / (file[:-2] + ".i")).read_text())
             (self.directory / (file[:-2] + ".i")).unlink()
+        if self.progress is not None:
+            self.progress.final = True                                   # every unit is known now
         results = self.pool.wait()
         compiled = [file for file in sources if self.units[file].job is not None]
         for file in compiled:

@@ -80,8 +80,11 @@ class CompilerPool:
     priority first, and one of higher priority than every running command starts at once if a
     core is left (``cores``, default: all): the longest compile never waits behind a shorter one."""
 
-    def __init__(self, cwd: Path, jobs: int | None = None, cores: int | None = None):
+    def __init__(self, cwd: Path, jobs: int | None = None, cores: int | None = None, on_finished=None):
         self.cwd, self.jobs = cwd, max(1, jobs or os.cpu_count() or 1)
+        #: called as ``on_finished(finished, submitted)`` when commands finish (cancelled ones not counted)
+        self.on_finished = on_finished
+        self.cancelled = 0
         self.cores = max(self.jobs, cores or os.cpu_count() or 1)
         self.pending: list[tuple[int, list[str]]] = []
         self.running: dict[int, tuple[subprocess.Popen, object]] = {}
@@ -109,12 +112,16 @@ class CompilerPool:
 
     def poll(self) -> None:
         """Collect finished commands and start queued ones in the free slots."""
+        finished = False
         for index, (proc, log) in list(self.running.items()):
             if proc.poll() is not None:
                 log.seek(0)
                 self.results[index] = (proc.returncode, log.read())
                 log.close()
                 del self.running[index]
+                finished = True
+        if finished and self.on_finished is not None:
+            self.on_finished(len(self.results) - self.cancelled, self.submitted - self.cancelled)
         while self.pending and (len(self.running) < self.jobs or self._outranks_running()):
             index, cmd = self.pending.pop(0)
             log = tempfile.TemporaryFile(mode="w+")
@@ -136,6 +143,8 @@ class CompilerPool:
                 pass
             proc.wait()
             log.close()
+        if index not in self.results:
+            self.cancelled += 1
         self.results[index] = (-signal.SIGKILL, "cancelled")
 
     def wait(self) -> dict[int, tuple[int, str]]:

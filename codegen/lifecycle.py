@@ -38,6 +38,7 @@ from .export import export_bundle
 from .generation import check_families, config_for, generate_validated, write_bundle
 from .hashing import content_hash, generated_hash
 from .manifest import folder_state
+from .progress import BuildProgress
 from .safe_files import ForeignFileError, check_owned
 from .spec import Bundle
 
@@ -177,7 +178,9 @@ def _build(model: Model, config, root: Path, folder: str, force: bool, start: fl
 def _generate_and_compile(model: Model, config, staging: Path, key: str, generated: str, cc: str,
                           timings: dict) -> list[str]:
     """Write and compile the bundle in ``staging``; the units compiled (others: object cache)."""
-    with UnitCompiler(staging, cc, config, f"{model.name}.h") as units:
+    progress = BuildProgress(model.name)
+    progress.begin()
+    with UnitCompiler(staging, cc, config, f"{model.name}.h", progress=progress) as units:
         mark, per_part = time.perf_counter(), {}      # each part's units compile while the next part generates
 
         def on_part(index: int, part: Bundle) -> None:
@@ -190,6 +193,7 @@ def _generate_and_compile(model: Model, config, staging: Path, key: str, generat
         mark = time.perf_counter()
         compiled = compile_bundle(staging, model.name, cc, config, units)
         timings["compile"] = time.perf_counter() - mark
+        progress.end(len(compiled), len(units.units))
     return compiled
 
 
