@@ -291,17 +291,22 @@ def _run(tasks: list[Task], fold, executor, progress, window: int, max_resubmits
 
 
 class ProgressBar:
-    """A one-line progress bar over completed runs on stderr (a line per 10 % when stderr is not
-    a terminal)."""
+    """Progress over completed runs on stderr: a ``tqdm.auto`` bar when tqdm is installed and
+    stderr is a terminal or a Jupyter notebook (its widget there, with ipywidgets); else a
+    one-line bar of its own (a line per 10 % when stderr is not a terminal, e.g. a log)."""
 
-    def __init__(self, width: int = 40, stream=None):
+    def __init__(self, width: int = 40, stream=None, use_tqdm: bool | None = None):
         self.width, self.start = width, time.perf_counter()
         self.stream = stream or sys.stderr
         self.interactive = self.stream.isatty()
         self._decile = 0
+        self._tqdm = self._tqdm_class(self.interactive) if use_tqdm is not False else None
+        self._bar = None
 
     def __call__(self, done: int, total: int) -> None:
         if total <= 0 or done == 0:
+            return
+        if self._tqdm is not None and self._tqdm_update(done, total):
             return
         filled = int(self.width * done / total)
         elapsed = time.perf_counter() - self.start
@@ -312,6 +317,30 @@ class ProgressBar:
             self.stream.write(text + "\n")
         self._decile = (10 * done) // total
         self.stream.flush()
+
+    @staticmethod
+    def _tqdm_class(terminal: bool):
+        """tqdm.auto's bar if tqdm is installed and it has somewhere to draw (a terminal, a notebook)."""
+        try:
+            from tqdm.auto import tqdm
+        except ImportError:
+            return None
+        notebook = any(base.__module__ == "tqdm.notebook" for base in tqdm.__mro__)      # Jupyter's widget bar
+        return tqdm if terminal or notebook else None
+
+    def _tqdm_update(self, done: int, total: int) -> bool:
+        """Move the tqdm bar; False (use the plain bar) if it cannot be drawn here."""
+        if self._bar is None:
+            try:
+                self._bar = self._tqdm(total=total, unit="run", desc="Monte Carlo", file=self.stream)
+            except ImportError:                 # tqdm.notebook without ipywidgets
+                self._tqdm = None
+                return False
+        self._bar.update(done - self._bar.n)
+        if done >= total:
+            self._bar.close()
+        return True
+
 
 
 def chunks(runs: int, size: int) -> list[range]:

@@ -219,3 +219,25 @@ def test_a_campaign_on_a_whole_o3_build_gives_the_default_build_s_numbers(launch
     for a, b in zip(o3.run(), default.run()):
         for f in C.FILTERS:
             np.testing.assert_array_equal(a.per_run(f), b.per_run(f))
+
+
+def test_progress_bar_uses_tqdm_on_a_terminal_and_its_own_lines_in_a_log():
+    import io
+    pytest.importorskip("tqdm")
+    from symkf.scenarios.campaign import ProgressBar
+
+    class Terminal(io.StringIO):
+        def isatty(self):
+            return True
+    screen = Terminal()
+    bar = ProgressBar(stream=screen)
+    for done in (0, 3, 10):
+        bar(done, 10)
+    assert bar._bar is not None and bar._bar.n == 10 and "Monte Carlo" in screen.getvalue()
+    assert "10/10" in screen.getvalue()
+    log = io.StringIO()
+    bar = ProgressBar(stream=log)
+    for done in range(11):
+        bar(done, 10)
+    lines = log.getvalue().splitlines()
+    assert bar._bar is None and len(lines) == 10 and lines[-1].startswith("[" + "#" * 40 + "] 10/10 runs")
