@@ -342,7 +342,6 @@ class ProgressBar:
         return True
 
 
-
 def chunks(runs: int, size: int) -> list[range]:
     """Run indices 0..runs-1 in consecutive ranges of ``size`` (the last may be shorter). The chunk
     size, not the worker count, fixes how per-run sums are grouped, so totals do not depend on it."""
