@@ -11,8 +11,9 @@ Case 4: EKF with bias and noise, gyros A and C failed, and all four failed (Figs
 
 Initial errors: Table 6 (Table 4 for the section-3 run); the truth starts at them, the filter at 0.
 Writes ``case<N>.png`` figures and ``summary.json``: per run the final and peak attitude error
-(deg), converged / bounded / diverged, the estimation errors (EKF runs), and per case one boolean
-per claim of the paper with its evidence. All dynamics come from ``models/geo_satellite.py``
+(deg), converged / bounded / diverged, the estimation errors (EKF runs), and per case each claim
+of the paper in plain words (``says``, ``compared`` with the numbers, ``holds``: claim_text.py)
+with its evidence; ``series.nc``: every loop's histories (scenarios/geo/series.py). All dynamics come from ``models/geo_satellite.py``
 through ``symkf.scenarios.geo.closed_loop``; nothing here restates an equation.
 """
 from __future__ import annotations
@@ -26,7 +27,8 @@ import numpy as np
 
 from symkf.models import geo_satellite as geo
 from symkf.scenarios import results as R
-from symkf.scenarios.geo import series
+from symkf.scenarios.claims import print_claims
+from symkf.scenarios.geo import claim_text, series
 from symkf.scenarios.campaign import (ModelKey, Task, add_scheduler_arguments, compiled_model, model_key, run_campaign,
                                       scheduler_problem)
 from symkf.scenarios.geo.closed_loop import LoopResult, LoopSettings, closed_loop_eigenvalues, geometry_rank, simulate
@@ -317,8 +319,10 @@ def run(args) -> int:
         entry["figure"] = str(plot_case(case, results, out))
         drawing += time.perf_counter() - mark
         summary["cases"][f"case{case}"] = entry
-        for claim, verdict in entry["claims"].items():
-            print(f"case {case}: {claim}: {verdict['value']}")
+        checked = [claim_text.claim(name, verdict) for name, verdict in entry["claims"].items()]
+        entry["claims"] = {c.name: {**c.as_dict(), "evidence": entry["claims"][c.name]["evidence"]} for c in checked}
+        print(f"case {case}, the paper's claims checked:")
+        print_claims(checked)
         for name, m in metrics[case].items():
             print(f"  {name:28s} {m['status']:9s} peak {max(m['peak_attitude_error_deg']):9.4f} deg"
                   f"  final {max(m['final_attitude_error_deg']):9.5f} deg")

@@ -74,6 +74,11 @@ def test_compare_command_writes_summary_and_figure(tmp_path, monkeypatch):
     assert set(runs) == {"bias_off_fail_none", "bias_off_fail_B", "bias_on_fail_none", "bias_on_fail_B"}
     assert all(len(r["peak_attitude_error_deg"]) == 3 for r in runs.values())
     assert (tmp_path / "case2.png").stat().st_size > 10_000
+    claim = summary["cases"]["case2"]["claims"]["gyro_B_failed_with_bias_still_converges"]
+    assert claim["says"] == "with gyro B failed and biased gyros (no EKF) the loop still converges"
+    assert claim["holds"] == (runs["bias_on_fail_B"]["status"] == "converged")
+    peak = runs["bias_on_fail_B"]["status_evidence"]["peak_deg"]
+    assert f"peak deg {peak:.3g}" in claim["compared"]
 
 
 @pytest.mark.slow
