@@ -32,7 +32,9 @@ total RMSE over the trials):
 
 Both are also given for the optical reference (NaN gaps linearly interpolated) as the floor of
 real motion. ``--sweep`` adds RMSE and oscillation vs β on a log grid and marks the β of least
-total RMSE (beyond the paper). Everything goes to ``<out>/summary.json`` and PNG figures.
+total RMSE (beyond the paper). Everything goes to ``<out>/summary.json`` and PNG figures; the
+Euler angles per β and sample to ``<out>/series.nc`` (scenarios/marg/series.py), from which
+``symkf plot <out>`` redraws the figures.
 """
 from __future__ import annotations
 
@@ -45,7 +47,8 @@ import numpy as np
 from symkf.models.marg import ALPHA_DEFAULT, BETA_MADGWICK
 from symkf.runtime import load
 from symkf.scenarios.marg.filter import make_filter
-from symkf.scenarios.marg import mekf
+from symkf.scenarios import results as R
+from symkf.scenarios.marg import mekf, series
 from symkf.scenarios.marg.data import (WHERE_BROAD, WHERE_XIO, Recording, broad_trials, data_dir, load_recording,
                                        run_recording)
 from symkf.scenarios.marg.broad_metric import broad_errors, error_rotation_vectors, euler_angles, from_enu, to_enu
@@ -244,18 +247,9 @@ def run(args) -> int:
         summary["reference_oscillation"] = oscillation(reference_angles, rate, args.hf_cutoff, _still(recording))
     if args.sweep:
         summary["sweep"] = sweep(compiled, recording, args)
-    figures = []
-    if not args.no_plots:
-        path = args.out / f"euler_{recording.name}_{args.form}_{args.mode}.png"
-        plot_euler(recording, per_beta, reference_angles, path)
-        figures.append(str(path))
-        zoom = args.out / f"euler_zoom_{recording.name}_{args.form}_{args.mode}.png"
-        plot_euler(recording, per_beta, reference_angles, zoom, window=tuple(args.zoom))
-        figures.append(str(zoom))
-        if args.sweep:
-            path = args.out / f"sweep_{recording.name}_{args.form}_{args.mode}.png"
-            plot_sweep(summary["sweep"], path, recording.name)
-            figures.append(str(path))
+    saved = series.make_series(recording, per_beta, reference_angles, args, summary.get("sweep"))
+    R.save(saved, args.out)                      # symkf plot <out> redraws the figures from it
+    figures = [] if args.no_plots else [str(path) for path in series.redraw(saved, args.out)]
     summary["figures"] = figures
     if args.mode == "imu":
         summary["note"] = ("6-axis mode: the heading is unobservable (initial heading from a sensor axis), so "

@@ -59,3 +59,39 @@ def test_oscillation_measure_separates_frequencies():
     # leakage of the 20 deg, 0.5 Hz motion past the cutoff stays below 0.1 % of its amplitude
     np.testing.assert_allclose(result["hf_rms_deg"], [0, 1 / np.sqrt(2), 0], atol=0.02)
     assert result["diff_rms_deg"][1] > result["diff_rms_deg"][0]
+
+
+def _synthetic_xio_csv(path, seconds=20.0, rate=100.0):
+    """A still sensor in the x-io CSV layout: time (s), gyro (deg/s), accelerometer (g), magnetometer (uT)."""
+    rng = np.random.default_rng(4)
+    n = int(seconds * rate)
+    rows = np.column_stack([np.arange(n) / rate, rng.normal(0, 0.2, (n, 3)),
+                            np.array([0.0, 0.0, 1.0]) + rng.normal(0, 0.01, (n, 3)),
+                            np.array([20.0, 0.0, -40.0]) + rng.normal(0, 0.5, (n, 3))])
+    header = "Time (s),Gyroscope X (deg/s),Gyroscope Y (deg/s),Gyroscope Z (deg/s),Accelerometer X (g)," \
+             "Accelerometer Y (g),Accelerometer Z (g),Magnetometer X (uT),Magnetometer Y (uT),Magnetometer Z (uT)"
+    np.savetxt(path, rows, delimiter=",", header=header, comments="")
+    return path
+
+
+def test_symkf_plot_redraws_the_marg_figures_from_the_series_alone(tmp_path, monkeypatch):
+    """The Euler angles per beta and sample go to the series file; `symkf plot` draws the same PNGs
+    from it without running a filter."""
+    from symkf.scenarios import results
+    from symkf.scenarios.marg import compare
+    data = _synthetic_xio_csv(tmp_path / "still.csv")
+    out = tmp_path / "out"
+    assert cli.main(["compare", "marg", "--data", str(data), "--beta", "0.01,0.5", "--out", str(out)]) == 0
+    saved = results.load(out)
+    assert saved.comparison == "marg" and saved["euler"].shape == (2, 2000, 3)
+    assert saved.variables["euler"].attrs["units"] == "rad" and saved["beta"].tolist() == [0.01, 0.5]
+    summary = json.loads((out / "summary.json").read_text())
+    deg = np.degrees(np.unwrap(saved["euler"][1], axis=0))             # the summary's oscillation, from the series
+    assert np.sqrt(np.mean(np.diff(deg, axis=0) ** 2, axis=0)).tolist() == pytest.approx(
+        summary["per_beta"][1]["oscillation"]["diff_rms_deg"], rel=1e-9)
+    monkeypatch.setattr(compare, "run_recording", lambda *a, **k: pytest.fail("symkf plot ran a filter"))
+    assert cli.main(["plot", str(out), "--out", str(tmp_path / "again")]) == 0
+    for figure in summary["figures"]:
+        name = figure.rsplit("/", 1)[-1]
+        assert (tmp_path / "again" / name).read_bytes() == (out / name).read_bytes(), name
+    assert len(summary["figures"]) == 2
