@@ -8,6 +8,7 @@
     symkf bench <name> [options]        a timing table (symkf bench --help lists them)
     symkf options [--markdown]          every codegen option for --set, with type, default and meaning
     symkf families                      the filter families a model can ask for, and what x0, P0, Q mean
+    symkf plot <folder> [--out DIR]     redraw a saved comparison's figures from its series.nc (no filter runs)
     symkf design-guidance               re-solve the launcher guidance (IPOPT)
     symkf --version                     the installed symkf (and CasADi) version
 
