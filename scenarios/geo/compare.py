@@ -29,6 +29,7 @@ from symkf.models import geo_satellite as geo
 from symkf.scenarios import results as R
 from symkf.scenarios.claims import print_claims
 from symkf.scenarios.geo import claim_text, series
+from symkf.scenarios.geo.figures import plot_case
 from symkf.scenarios.campaign import (ModelKey, Task, add_scheduler_arguments, compiled_model, model_key, run_campaign,
                                       scheduler_problem)
 from symkf.scenarios.geo.closed_loop import LoopResult, LoopSettings, closed_loop_eigenvalues, geometry_rank, simulate
@@ -210,44 +211,6 @@ def claims_case4(results: dict, metrics: dict, reference: dict | None) -> dict:
         same = largest_difference(results["fail_ABCD"], reference["bias_on_noise_on"])
         claims["all_failed_matches_no_failure"] = {"value": same["fraction"] < SAME_FRACTION, "evidence": same}
     return claims
-
-
-# ---------------------------------------------------------------------- figures
-def plot_case(case: int, results: dict, out: Path) -> Path:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    ekf = any(r.settings.estimator != "sensors" for r in results.values())
-    rows = ["attitude", "integral"] + (["angle", "rate", "momentum", "bias"] if ekf else [])
-    fig, axes = plt.subplots(len(rows), 3 if not ekf else 1, figsize=(13, 2.6 * len(rows)), squeeze=False)
-    for name, r in results.items():
-        series = {"attitude": (r.attitude_deg, "attitude (deg)"),
-                  "integral": (np.rad2deg(r.truth[:, geo.SLICES["integral"]]), "integrated angle (deg s)")}
-        if ekf:
-            series.update({"angle": (np.rad2deg(r.estimation_error("angle")), "angle est. error (deg)"),
-                           "rate": (np.rad2deg(r.estimation_error("rate")), "rate est. error (deg/s)"),
-                           "momentum": (r.estimation_error("momentum"), "momentum est. error (in-lbf-s)"),
-                           "bias": (np.rad2deg(r.estimation_error("bias")), "bias est. error (deg/s)")})
-        for i, row in enumerate(rows):
-            data, label = series[row]
-            if ekf:
-                axes[i, 0].plot(r.t, np.max(np.abs(data), axis=1), label=name, lw=0.8)
-                axes[i, 0].set_yscale("log")
-                axes[i, 0].set_ylabel("max |" + label + "|", fontsize=8)
-            else:
-                for j in range(3):
-                    axes[i, j].plot(r.t, data[:, j], label=name, lw=0.8)
-                    axes[i, j].set_title(f"{label}, axis {'xyz'[j]}", fontsize=8)
-    for ax in axes[-1]:
-        ax.set_xlabel("time (s)")
-    axes[0, 0].legend(fontsize=6, ncol=2)
-    fig.suptitle(f"Paper 003, Table 7 case {case}")
-    fig.tight_layout()
-    path = out / f"case{case}.png"
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return path
 
 
 # ---------------------------------------------------------------------- driver

@@ -17,6 +17,7 @@ import numpy as np
 
 from symkf.models import geo_satellite as geo
 from symkf.scenarios import results as R
+from .figures import plot_case
 
 STATUSES = ("converged", "bounded", "diverged")
 #: units of each block of the state (the model's paper units: in-lbf-s for wheel momentum)
@@ -63,7 +64,7 @@ def make_series(cases: dict[int, dict], metrics: dict[int, dict], attrs: dict) -
 
 @dataclass
 class SavedLoop:
-    """One saved run, read by ``compare.plot_case`` as a ``LoopResult``."""
+    """One saved run, read by ``figures.plot_case`` as a ``LoopResult``."""
 
     settings: SimpleNamespace          # estimator, failed_gyros
     t: np.ndarray
@@ -94,6 +95,5 @@ def loops(series: R.Series) -> dict[int, dict[str, SavedLoop]]:
 
 def redraw(series: R.Series, out: Path) -> list[Path]:
     """case<N>.png of every case in a loaded series."""
-    from .compare import plot_case
     Path(out).mkdir(parents=True, exist_ok=True)
     return [plot_case(case, runs, Path(out)) for case, runs in loops(series).items()]

@@ -14,6 +14,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from symkf.scenarios import results as R
+from .figures import plot_euler, plot_sweep
 
 ANGLES = ("psi", "theta", "phi")
 
@@ -38,7 +39,6 @@ def make_series(recording, per_beta: list[tuple[float, np.ndarray]], reference: 
 
 def redraw(series: R.Series, out: Path) -> list[Path]:
     """The Euler-angle figures (whole and zoomed) and, if saved, the sweep figure."""
-    from .compare import plot_euler, plot_sweep
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     name, form, mode = series.attrs["recording"], series.attrs["form"], series.attrs["mode"]
