@@ -25,8 +25,8 @@ trial, the total / heading / inclination RMSE of Madgwick's filter at β = 0.041
 (the sweep grid plus 0.041, chosen per trial: an oracle), and of the generated multiplicative
 EKF of ``models/marg_mekf.py`` (one parameter set for every trial) and of its fixed-interval
 smoothing (``mekf_rts``: the generated error-state RTS smoother over the same run, the same
-parameters); ``summary.json`` holds the rows and ``mean_total_rmse_deg`` (filter name -> mean
-total RMSE over the trials):
+parameters); ``series.nc`` holds the rows (``rmse``: trial x filter x metric) and ``summary.json``
+``mean_total_rmse_deg`` (filter name -> mean total RMSE over the trials):
 
     symkf compare marg --data broad --out results/marg
 
@@ -264,22 +264,23 @@ def run_trials(args) -> int:
             detail = str(exc).removeprefix(f"{recording.name}: ")
             print(f"symkf compare marg: trial {recording.name}: {detail}")
             return 1
-    summary = {"data": str(args.data), "trials": [str(p) for p in paths], "form": args.form, "rows": rows,
+    summary = {"data": str(args.data), "trials": [str(p) for p in paths], "form": args.form,
                "mean_total_rmse_deg": {f: float(np.mean([r[f]["total"] for r in rows])) for f in FILTERS},
                "metric": "BROAD RMSE over movement phases, deg (the benchmark's own error metric)",
                "note": "madgwick_best is an oracle: its beta is chosen per trial against the reference; "
                        "mekf uses one parameter set (models/marg_mekf.py, scenarios/marg/mekf.py) for every trial"}
     args.out.mkdir(parents=True, exist_ok=True)
+    R.save(series.trials_series(rows, FILTERS, {"data": str(args.data), "form": args.form}), args.out)
     (args.out / "summary.json").write_text(json.dumps(summary, indent=1))
-    print_trials_table(summary)
+    print_trials_table(summary, rows)
     return 0
 
 
-def print_trials_table(summary: dict) -> None:
-    print(f"BROAD RMSE [deg] total / heading / inclination, {len(summary['rows'])} trials from {summary['data']}")
+def print_trials_table(summary: dict, rows: list[dict]) -> None:
+    print(f"BROAD RMSE [deg] total / heading / inclination, {len(rows)} trials from {summary['data']}")
     print(f"{'trial':<36} {'Madgwick beta=0.041':>21} {'Madgwick best beta':>27} {'MEKF (marg_mekf)':>21}"
           f" {'MEKF + RTS smoother':>21}")
-    for r in summary["rows"]:
+    for r in rows:
         cells = [" / ".join(f"{r[f][k]:5.2f}" for k in ("total", "heading", "inclination")) for f in FILTERS]
         print(f"{r['trial']:<36} {cells[0]:>21} {cells[1]:>18} (b={r['best_beta']:<6g}) {cells[2]:>21} {cells[3]:>21}")
     means = summary["mean_total_rmse_deg"]

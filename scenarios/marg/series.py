@@ -38,7 +38,10 @@ def make_series(recording, per_beta: list[tuple[float, np.ndarray]], reference: 
 
 
 def redraw(series: R.Series, out: Path) -> list[Path]:
-    """The Euler-angle figures (whole and zoomed) and, if saved, the sweep figure."""
+    """The Euler-angle figures (whole and zoomed) and, if saved, the sweep figure (none for a
+    folder of trials: its result is the table)."""
+    if series.attrs.get("kind") == "trials":
+        return []
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     name, form, mode = series.attrs["recording"], series.attrs["form"], series.attrs["mode"]
@@ -52,3 +55,25 @@ def redraw(series: R.Series, out: Path) -> list[Path]:
         paths.append(out / f"sweep_{name}_{form}_{mode}.png")
         plot_sweep(R.attribute(series, "sweep"), paths[-1], name)
     return paths
+
+
+# ---------------------------------------------------------------------- a folder of BROAD trials
+METRICS = ("total", "heading", "inclination")
+
+
+def trials_series(rows: list[dict], filters: tuple[str, ...], attrs: dict) -> R.Series:
+    """The per-trial rows of ``symkf compare marg --data DIR``: BROAD RMSE per trial, filter and metric."""
+    v = {
+        "trial": R.var(["trial"], [r["trial"] for r in rows]),
+        "filter": R.var(["filter"], list(filters), long_name="Madgwick at 0.041, at its best beta, MEKF, MEKF + RTS"),
+        "metric": R.var(["metric"], list(METRICS), long_name="BROAD error metric over movement phases"),
+        "rmse": R.var(["trial", "filter", "metric"], [[[r[f][m] for m in METRICS] for f in filters] for r in rows],
+                      "deg", "BROAD RMSE"),
+        "samples": R.var(["trial"], [r["samples"] for r in rows], "1", "IMU samples of the trial"),
+        "best_beta": R.var(["trial"], [r["best_beta"] for r in rows], "rad/s", "Madgwick's best beta (an oracle)"),
+        "mekf_failed_steps": R.var(["trial"], [r["mekf_failed_steps"] for r in rows], "1"),
+        "mekf_gated_steps": R.var(["trial"], [r["mekf_gated_steps"] for r in rows], "1"),
+        "mekf_heading_used_fraction": R.var(["trial"], [r["mekf_heading_used_fraction"] for r in rows], "1",
+                                            "fraction of samples whose magnetometer heading the MEKF used"),
+    }
+    return R.Series("marg", v, {"kind": "trials", **attrs})

@@ -9,6 +9,7 @@ import json
 import numpy as np
 import pytest
 
+from symkf.scenarios import results
 from symkf.scenarios.cli import main
 from symkf.scenarios.marg.data import WHERE_BROAD, broad_trials, data_dir, load_recording
 
@@ -42,6 +43,31 @@ def test_folder_listing_prefers_hdf5_and_refuses_empty_folders(tmp_path):
         load_recording(bad)
 
 
+def test_compare_over_a_folder_of_synthetic_trials_puts_the_rows_in_the_series(tmp_path, capsys):
+    """Two still sensors in BROAD's HDF5 layout (reference: the identity), scored over their middle
+    third: one row per trial in series.nc, the means in summary.json, and no rows there."""
+    folder, rate, n = tmp_path / "trials", 285.714, 3000
+    folder.mkdir()
+    rng = np.random.default_rng(2)
+    for name in ("01_still", "02_still"):
+        with h5py.File(folder / f"{name}.hdf5", "w") as trial:
+            trial["imu_gyr"] = rng.normal(0, 0.003, (n, 3))
+            trial["imu_acc"] = np.array([0.0, 0.0, 9.81]) + rng.normal(0, 0.05, (n, 3))
+            trial["imu_mag"] = np.array([0.0, 20.0, -40.0]) + rng.normal(0, 0.3, (n, 3))
+            trial["opt_quat"] = np.tile([1.0, 0.0, 0.0, 0.0], (n, 1))
+            trial["movement"] = (np.arange(n) >= n // 3) & (np.arange(n) < 2 * n // 3)
+            trial.attrs["sampling_rate"] = rate
+    assert main(["compare", "marg", "--data", str(folder), "--out", str(tmp_path / "out")]) == 0
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    rows = results.load(tmp_path / "out")
+    assert "rows" not in summary and rows.labels("trial") == ["01_still", "02_still"]
+    assert rows["rmse"].shape == (2, 4, 3) and rows.variables["rmse"].attrs["units"] == "deg"
+    for k, name in enumerate(rows.labels("filter")):
+        assert summary["mean_total_rmse_deg"][name] == pytest.approx(rows["rmse"][:, k, 0].mean(), rel=1e-15)
+    assert "mean total" in capsys.readouterr().out
+    assert main(["plot", str(tmp_path / "out")]) == 0          # a table, no figure: nothing to redraw, no error
+
+
 def _empty(tmp_path):
     folder = tmp_path / "empty"
     folder.mkdir()
@@ -59,14 +85,15 @@ def test_compare_over_a_folder_writes_one_table(tmp_path, capsys):
         cut.attrs["sampling_rate"] = source.attrs["sampling_rate"]
     assert main(["compare", "marg", "--data", str(folder), "--out", str(tmp_path / "out")]) == 0
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
-    row, = summary["rows"]
-    assert row["trial"] == "07_cut" and row["samples"] == n
+    rows = results.load(tmp_path / "out")                       # the per-trial rows: series.nc
+    assert rows.labels("trial") == ["07_cut"] and rows["samples"].tolist() == [n]
     means = summary["mean_total_rmse_deg"]
-    assert set(means) == {"madgwick_0.041", "madgwick_best", "mekf", "mekf_rts"}
+    assert set(means) == {"madgwick_0.041", "madgwick_best", "mekf", "mekf_rts"} == set(rows.labels("filter"))
     assert means["madgwick_best"] <= means["madgwick_0.041"]
-    for name, value in means.items():
-        assert value == row[name]["total"] and 0 < value < 30, (name, value)
-    assert row["mekf_failed_steps"] == 0
+    for k, name in enumerate(rows.labels("filter")):
+        value = means[name]
+        assert value == rows["rmse"][0, k, 0] and 0 < value < 30, (name, value)
+    assert rows["mekf_failed_steps"].tolist() == [0]
     assert "mean total" in capsys.readouterr().out
 
 
