@@ -20,6 +20,11 @@ class Claim:
     compared: str
     holds: bool
 
+    @classmethod
+    def from_dict(cls, name: str, entry: dict) -> "Claim":
+        """The claim of a summary entry holding ``says``, ``compared`` and ``holds``."""
+        return cls(name, entry["says"], entry["compared"], bool(entry["holds"]))
+
     def as_dict(self) -> dict:
         return {"says": self.says, "compared": self.compared, "holds": bool(self.holds)}
 

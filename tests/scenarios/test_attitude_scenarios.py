@@ -51,6 +51,10 @@ def test_compare_writes_figures_and_summary(tmp_path, monkeypatch):
         assert metrics["attitude_3sigma_deg"] >= 3 * metrics["attitude_rms_deg"] / np.sqrt(3) - 1e-12
     assert np.isfinite(summary["ukf_improvement_percent"])
     assert summary["paper_claims"]["ukf_about_30_percent_better"]["claimed_percent"] == 30.0
+    about = summary["paper_claims"]["ukf_about_30_percent_better"]
+    assert about["holds"] == (abs(summary["ukf_improvement_percent"] - 30) <= 10)
+    assert f"{summary['ukf_improvement_percent']:.1f} %" in about["compared"]
+    assert summary["paper_claims"]["both_converge"]["compared"] == "runs converged: MEKF 2/2, UKF 2/2"
     rms = np.sqrt(np.mean(series["attitude_error_rms"][:, 600:] ** 2, axis=1))     # the last half, over runs
     assert rms.tolist() == pytest.approx([summary["filters"][f]["attitude_rms_deg"] for f in ("mekf", "ukf")], rel=1e-12)
 
