@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import time
 from pathlib import Path
 
 import numpy as np
@@ -166,7 +167,9 @@ def run(args) -> int:
     except (FileNotFoundError, ValueError) as exc:
         print(f"symkf compare marg: {exc}\n  {WHERE_BROAD}\n  {WHERE_XIO}")
         return 1
-    compiled = load("marg")
+    start = time.perf_counter()
+    compiled = load("marg")                      # builds if the library is stale
+    built = time.perf_counter() - start
     args.out.mkdir(parents=True, exist_ok=True)
     per_beta, entries = [], []
     for beta in args.beta:
@@ -187,6 +190,7 @@ def run(args) -> int:
         summary["reference_oscillation"] = oscillation(reference_angles, rate, args.hf_cutoff, _still(recording))
     if args.sweep:
         summary["sweep"] = sweep(compiled, recording, args)
+    filtered = time.perf_counter() - start - built
     saved = series.make_series(recording, per_beta, reference_angles, args, summary.get("sweep"))
     R.save(saved, args.out)                      # symkf plot <out> redraws the figures from it
     figures = [] if args.no_plots else [str(path) for path in series.redraw(saved, args.out)]
@@ -196,6 +200,8 @@ def run(args) -> int:
                            "BROAD total/heading errors are not meaningful; read the inclination error")
     (args.out / "summary.json").write_text(json.dumps(summary, indent=1))
     _print_table(summary)
+    print(f"wrote {args.out}/ in {time.perf_counter() - start:.1f} s: build {built:.1f} s, filters {filtered:.1f} s, "
+          f"figures and series {time.perf_counter() - start - built - filtered:.1f} s")
     return 0
 
 
