@@ -89,7 +89,7 @@ def run(args) -> int:
     write_csv(out / "rms_table.csv", rows)
     (out / "rms_table.md").write_text(f"Filters: {args.filters}\n\n" + markdown_table(results, rows))
     checked = paper_claims.claims(results)
-    summary = make_summary(results, args, wall, campaign, checked)
+    summary = {**make_summary(results, args, wall, campaign, checked), "build_s": built}
     (out / "summary.json").write_text(json.dumps(summary, indent=1))
     config = figures.configuration(args.filters, args.runs, args.seed)
     figures.plot_rms(results, "V", "Speed error RMS (m/s)", out / "fig_velocity_rms.png", config)

@@ -1,6 +1,7 @@
 """`symkf compare attitude` and `symkf bench attitude` on tiny settings (campaigns: the CLI)."""
 import argparse
 import json
+import re
 
 import numpy as np
 import pytest
@@ -28,9 +29,12 @@ def test_truth_record_is_consistent():
     assert np.allclose(offset.mean(axis=0), -4e-3, atol=3 * att.GYRO_ANGLE_RANDOM_WALK / np.sqrt(0.25 * 240) + 1e-5)
 
 
-def test_compare_writes_figures_and_summary(tmp_path, monkeypatch):
+def test_compare_writes_figures_and_summary(tmp_path, monkeypatch, capsys):
     args = parse(compare_attitude, ["--scenario", "I", "--runs", "2", "--duration", "300", "--out", str(tmp_path)])
     assert compare_attitude.run(args) == 0
+    printed = capsys.readouterr().out
+    assert "HOLDS: both filters converge — runs converged: MEKF 2/2, UKF 2/2." in printed
+    assert re.search(r"in [\d.]+ s: build [\d.]+ s, campaign [\d.]+ s, figures and series [\d.]+ s\n$", printed)
     out = tmp_path / "scenario_I"
     series = results.load(out)                  # the figures' series and every run's row
     assert series.comparison == "attitude" and series["attitude_error_rms"].shape == (2, 1200)
