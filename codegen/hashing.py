@@ -44,7 +44,7 @@ FRAMEWORK_MODULES = ("symkf.codegen.build_folders", "symkf.codegen.c_backend.api
                      "symkf.codegen.compiler_pool", "symkf.codegen.discretize", "symkf.codegen.errors", "symkf.codegen.export",
                      "symkf.codegen.generation", "symkf.codegen.hashing", "symkf.codegen.families.framework",
                      "symkf.codegen.model_functions",
-                     "symkf.codegen.lifecycle", "symkf.codegen.linalg", "symkf.codegen.manifest",
+                     "symkf.codegen.lifecycle", "symkf.codegen.linalg", "symkf.codegen.manifest", "symkf.codegen.progress",
                      "symkf.codegen.safe_files", "symkf.codegen.scaling", "symkf.codegen.spec",
                      "symkf.codegen.square_root", "symkf.models.base", "symkf.models.estimation")
 

@@ -147,6 +147,9 @@ def load(folder: Path) -> Series:
                                 "`symkf compare <name> --out FOLDER` writes one")
     if path.suffix == ".npz":
         with np.load(path, allow_pickle=False) as data:
+            if "__meta__" not in data:
+                raise FileNotFoundError(f"{path}: written by an earlier symkf, without its dimensions and units; "
+                                        "run the comparison again to write it anew")
             meta = json.loads(str(data["__meta__"]))
             variables = {k: Variable(tuple(m["dims"]), data[k], m["attrs"]) for k, m in meta["variables"].items()}
         attrs = meta["attrs"]

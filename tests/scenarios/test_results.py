@@ -51,5 +51,8 @@ def test_without_the_extra_npz_is_written_and_stderr_says_once_how_to_get_netcdf
 def test_a_folder_without_series_is_refused_by_name(tmp_path):
     with pytest.raises(FileNotFoundError, match="no saved series"):
         R.load(tmp_path)
+    np.savez(tmp_path / "series.npz", labels=np.array(["20Hz small"]))        # an older layout, no dims/units
+    with pytest.raises(FileNotFoundError, match="earlier symkf.*run the comparison again"):
+        R.load(tmp_path)
     with pytest.raises(ValueError, match="dimensions"):
         R.var(["a"], np.zeros((2, 2)))
