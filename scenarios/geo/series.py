@@ -4,8 +4,9 @@
 One row of dimension ``run`` per closed loop of every case run (its case, name, estimator and
 failed gyros beside it); per run and 1/8 s tick (``step``, NaN past the run's ``steps``: a run
 that diverged stops early): the truth, the estimate and the EKF's sigma = sqrt(diag P) of the 17
-states and the wheel and body torques (a ``LoopResult`` again when loaded) of ``models/geo_satellite.py`` (units per state in ``state_units``); per run: its status
-(converged / bounded / diverged, ``compare.classify``) and peak and final attitude error.
+states of ``models/geo_satellite.py`` (units per state in ``state_units``) and the wheel and body
+torques, so that a loaded run is a ``LoopResult`` again; per run: its status (converged / bounded
+/ diverged, ``compare.classify``) and peak and final attitude error.
 """
 from __future__ import annotations
 
