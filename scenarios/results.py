@@ -108,7 +108,7 @@ def save(series: Series, folder: Path) -> Path:
         _said_fallback = True
     meta = {"attrs": attrs, "variables": {k: {"dims": v.dims, "attrs": v.attrs} for k, v in series.variables.items()}}
     path = folder / NPZ_FILE
-    np.savez_compressed(path, __meta__=np.array(json.dumps(meta)), **{k: v.data for k, v in series.variables.items()})
+    np.savez_compressed(path, __meta__=np.array(json.dumps(meta, default=_plain)), **{k: v.data for k, v in series.variables.items()})
     (folder / NETCDF_FILE).unlink(missing_ok=True)
     return path
 
@@ -124,6 +124,13 @@ def _save_netcdf(series: Series, attrs: dict, path: Path) -> Path:
     dataset.to_netcdf(tmp, engine="h5netcdf", encoding=encoding)
     tmp.replace(path)
     return path
+
+
+def _plain(value):
+    """NumPy numbers and arrays in attributes (a series read back from netCDF) as JSON."""
+    if isinstance(value, (np.generic, np.ndarray)):
+        return value.tolist()
+    raise TypeError(f"attribute of type {type(value).__name__} is not a number, string or list")
 
 
 def _attr(value):

@@ -27,7 +27,7 @@ def _check(loaded: R.Series) -> None:
     assert R.attribute(loaded, "runs") == 3 and R.attribute(loaded, "tuning") == {"q": [1.0, 2.0]}
 
 
-def test_netcdf_round_trip_is_exact_and_self_describing(tmp_path):
+def test_netcdf_round_trip_is_exact_and_self_describing(tmp_path, monkeypatch):
     xr = pytest.importorskip("xarray")
     pytest.importorskip("h5netcdf")
     path = R.save(_series(), tmp_path)
@@ -36,6 +36,10 @@ def test_netcdf_round_trip_is_exact_and_self_describing(tmp_path):
         assert data["rms"].dims == ("case", "step") and data["rms"].attrs["units"] == "m"
         assert data.attrs["comparison"] == "demo"
     _check(R.load(tmp_path))
+    loaded = R.load(tmp_path)
+    monkeypatch.setattr(R, "netcdf_available", lambda: False)       # read back from netCDF, then saved as .npz
+    R.save(loaded, tmp_path / "again")
+    _check(R.load(tmp_path / "again"))
 
 
 def test_without_the_extra_npz_is_written_and_stderr_says_once_how_to_get_netcdf(tmp_path, monkeypatch, capsys):
