@@ -304,6 +304,8 @@ class ProgressBar:
         self._bar = None
 
     def __call__(self, done: int, total: int) -> None:
+        if done == 0:                          # the campaign starts (a build before it is not its time)
+            self.start = time.perf_counter()
         if total <= 0 or done == 0:
             return
         if self._tqdm is not None and self._tqdm_update(done, total):

@@ -237,7 +237,9 @@ def test_progress_bar_uses_tqdm_on_a_terminal_and_its_own_lines_in_a_log():
     assert "10/10" in screen.getvalue()
     log = io.StringIO()
     bar = ProgressBar(stream=log)
+    bar.start -= 100.0                                # e.g. a build between making the bar and the campaign
     for done in range(11):
         bar(done, 10)
+    assert float(log.getvalue().split("runs, ")[1].split(" s")[0]) < 50      # timed from the campaign's start
     lines = log.getvalue().splitlines()
     assert bar._bar is None and len(lines) == 10 and lines[-1].startswith("[" + "#" * 40 + "] 10/10 runs")
