@@ -111,3 +111,35 @@ def test_compare_names_a_defective_trial_instead_of_a_traceback(tmp_path, capsys
     assert main(["compare", "marg", "--data", str(folder), "--out", str(tmp_path / "out")]) == 1
     out = capsys.readouterr().out
     assert "symkf compare marg: trial 07_bad:" in out and message in out
+
+
+def _trailing_by_lags(values, samples, reduce):
+    """The rest window's max/min as first written: one pass per lag (O(N * window))."""
+    out = values.copy()
+    for lag in range(1, samples):
+        out[lag:] = reduce(out[lag:], values[:-lag])
+    return out
+
+
+@needs_broad
+def test_running_rest_window_equals_the_lag_by_lag_window_bit_for_bit():
+    """The at-rest rule's running max/min (O(N)) on trial 07: the same numbers as the window
+    scanned lag by lag, the same rest mask, and rest found in the trial's still phases."""
+    from symkf.scenarios.marg import mekf
+    recording = load_recording(TRIAL_07.with_suffix(".mat"))
+    samples = int(round(mekf.REST_SECONDS / np.median(np.diff(recording.time))))
+    rate = np.linalg.norm(recording.gyro, axis=1)
+    assert samples > 100
+    for values in (rate, recording.acc):
+        for reduce in (np.maximum, np.minimum):
+            np.testing.assert_array_equal(mekf._trailing(values, samples, reduce),
+                                          _trailing_by_lags(values, samples, reduce))
+    for short in (1, 2, 7):
+        np.testing.assert_array_equal(mekf._trailing(recording.acc[:500], short, np.maximum),
+                                      _trailing_by_lags(recording.acc[:500], short, np.maximum))
+    spread = _trailing_by_lags(recording.acc, samples, np.maximum) - _trailing_by_lags(recording.acc, samples, np.minimum)
+    expected = (_trailing_by_lags(rate, samples, np.maximum) <= mekf.REST_GYRO) & (spread.max(axis=1) <= mekf.REST_ACC)
+    expected[:samples - 1] = False
+    rest = mekf.at_rest(recording)
+    np.testing.assert_array_equal(rest, expected)
+    assert 0.1 < rest[~recording.movement].mean() and rest[recording.movement].mean() < 0.05
