@@ -19,6 +19,9 @@
   and ``step_api_python`` (``Filter.step``, as above; after its first step the fast path calls
   the trusted kernel, runtime/fastpath.py) and ``run`` (``Filter.run`` over the whole trial:
   contract checks, masks and the C loop); its BROAD RMSE per trial.
+- ``pipeline_vs_vqf``: the whole ``symkf compare marg`` pipeline of the MEKF (masks + run) per
+  sample against VQF's ``updateBatch`` on the same trial, side by side (``scenarios/marg/vqf_bench.py``;
+  skipped with a message when the vqf package is missing).
 - ``--instructions``: the MEKF's C API per sample under callgrind (deterministic; predict, update,
   step and run, and the step kernel's share of the run: ``scenarios/marg/instructions.py``).
 - RMSE per BROAD trial (total / heading / inclination over movement phases, deg) at β = 0.041
@@ -42,6 +45,7 @@ from symkf.scenarios.marg.broad_metric import broad_errors
 from . import mekf
 from .instructions import count_instructions
 from .compare import SWEEP_BETAS
+from .vqf_bench import pipeline_vs_vqf, print_table as print_vqf_table
 
 FORMS = ("simple", "full")
 
@@ -188,6 +192,7 @@ def run(args) -> int:
         result["timing_us_per_sample"][form] = time_form(compiled, first, form, args)
     mekf_model = load("marg_mekf", backend="compiled")
     result["timing_us_per_sample"]["mekf"] = time_mekf(mekf_model, first, args)
+    result["pipeline_vs_vqf"] = pipeline_vs_vqf(mekf_model, first, args.repeats)
     if getattr(args, "instructions", False):
         result["mekf_instructions_per_sample"] = count_instructions(build_model("marg_mekf").directory, first)
     result["mekf_rmse_deg"] = {}
@@ -209,6 +214,7 @@ def _print_tables(result: dict) -> None:
                      if "numpy_reference_us" in t else f"{'-':>10} {'-':>8}")
         print(f"{form:8} {t['step_bound_us']:13.3f} {t['step_api_us']:11.2f} {t['step_api_indexed_us']:10.2f} "
               f"{t['step_api_python_us']:14.2f} {t['run_us']:8.3f} {reference}")
+    print_vqf_table(result["pipeline_vs_vqf"], result["timing_trial"])
     counts = result.get("mekf_instructions_per_sample")
     if counts:
         print(f"\nmekf instructions per sample (callgrind, {result['timing_trial']}, C API): "

@@ -107,10 +107,9 @@ def make_filter(compiled, recording, gate: float | None = None):
                            t0=float(recording.time[0]), **options)
 
 
-def run_recording(compiled, recording, gate: float | None = None, smoothed: bool = False) -> RunResult:
-    """Filter a whole recording in one compiled run; ``result.q`` is sensor -> ENU. ``smoothed``:
-    also the fixed-interval smoothing of that run (the MEKF's error-state RTS smoother: a
-    SmoothedRun whose ``x_smooth[:, :4]`` is sensor -> ENU), with the same parameters."""
+def run_recording(compiled, recording, gate: float | None = None) -> RunResult:
+    """Filter a whole recording in one compiled run (the online filter: every rule causal);
+    ``result.q`` is sensor -> ENU. Its fixed-interval smoothing: ``mekf_offline.py``."""
     filt = make_filter(compiled, recording, gate)
     return filt.run(recording.time, measurements(recording), "marg", q=recording.mag, mask=masks(recording),
-                    u=recording.gyro, smooth=smoothed)
+                    u=recording.gyro)
