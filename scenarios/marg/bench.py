@@ -42,7 +42,7 @@ from symkf.scenarios import timing
 from symkf.scenarios.report import emit
 from symkf.scenarios.marg.data import data_dir, load_recording, run_recording
 from symkf.scenarios.marg.broad_metric import broad_errors
-from . import mekf
+from . import mekf, mekf_offline
 from .instructions import count_instructions
 from .compare import SWEEP_BETAS
 from .vqf_bench import pipeline_vs_vqf, print_table as print_vqf_table
@@ -192,7 +192,7 @@ def run(args) -> int:
         result["timing_us_per_sample"][form] = time_form(compiled, first, form, args)
     mekf_model = load("marg_mekf", backend="compiled")
     result["timing_us_per_sample"]["mekf"] = time_mekf(mekf_model, first, args)
-    result["pipeline_vs_vqf"] = pipeline_vs_vqf(mekf_model, first, args.repeats)
+    result["pipeline_vs_vqf"] = pipeline_vs_vqf(mekf_model, mekf_offline.load_model(), first, args.repeats)
     if getattr(args, "instructions", False):
         result["mekf_instructions_per_sample"] = count_instructions(build_model("marg_mekf").directory, first)
     result["mekf_rmse_deg"] = {}

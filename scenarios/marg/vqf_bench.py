@@ -34,9 +34,10 @@ def vqf_or_none():
     return vqf
 
 
-def pipeline_vs_vqf(compiled, recording, rounds: int) -> dict:
+def pipeline_vs_vqf(compiled, offline, recording, rounds: int) -> dict:
     """µs per sample (medians over ``rounds``) of the pipeline and VQF, and their per-round
-    ratios; ``{"skipped": MISSING}`` without the vqf package."""
+    ratios; ``compiled``: ``marg_mekf``, ``offline``: ``mekf_offline.load_model()``;
+    ``{"skipped": MISSING}`` without the vqf package."""
     vqf = vqf_or_none()
     if vqf is None:
         return {"skipped": MISSING}
@@ -45,7 +46,7 @@ def pipeline_vs_vqf(compiled, recording, rounds: int) -> dict:
     functions = {
         "pipeline": lambda i: mekf.run_recording(compiled, recording),
         "vqf": lambda i: vqf.VQF(ts).updateBatch(gyr, acc, mag),
-        "pipeline_smoothed": lambda i: mekf_offline.smooth_recording(compiled, recording),
+        "pipeline_smoothed": lambda i: mekf_offline.smooth_recording(offline, recording),
         "offline_vqf": lambda i: vqf.offlineVQF(gyr, acc, mag, ts),
     }
     samples = timing.interleaved(functions, rounds)
