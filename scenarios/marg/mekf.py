@@ -54,10 +54,11 @@ def initial_orientation(acc: np.ndarray, mag: np.ndarray) -> np.ndarray:
     return Rotation.from_matrix(np.vstack([east, north, up])).as_quat()
 
 
-def dip_angles(acc: np.ndarray, mag: np.ndarray) -> np.ndarray:
-    """Angle (rad) of the field below the horizontal plane, per sample, using a/|a| as up."""
+def dip_angles(acc: np.ndarray, mag: np.ndarray, mag_norm: np.ndarray | None = None) -> np.ndarray:
+    """Angle (rad) of the field below the horizontal plane, per sample, using a/|a| as up
+    (``mag_norm``: |m| per sample when the caller has it)."""
     up = acc / np.linalg.norm(acc, axis=1, keepdims=True)
-    m = mag / np.linalg.norm(mag, axis=1, keepdims=True)
+    m = mag / (np.linalg.norm(mag, axis=1) if mag_norm is None else mag_norm)[:, None]
     return np.arcsin(np.clip(-np.sum(up * m, axis=1), -1, 1))
 
 
@@ -71,12 +72,21 @@ def _trailing(values: np.ndarray, samples: int, reduce) -> np.ndarray:
     return running(values, size=samples, axis=0, origin=(samples - 1) // 2, mode="nearest")
 
 
+def _window_any(flags: np.ndarray, samples: int) -> np.ndarray:
+    """Per sample, whether any of ``flags`` in its trailing window of ``samples`` is set (counts
+    from one cumulative sum: O(N), the same booleans as a running max of the flags)."""
+    count = np.cumsum(flags, dtype=np.int64)
+    count[samples:] -= count[:-samples].copy()
+    return count > 0
+
+
 def at_rest(recording) -> np.ndarray:
     """(N,) bool: the sensor is at rest by the rule of :data:`REST_SECONDS` (False for the first window)."""
     samples = max(1, int(round(REST_SECONDS / np.median(np.diff(recording.time)))))
-    rate = _trailing(np.linalg.norm(recording.gyro, axis=1), samples, np.maximum)
-    spread = _trailing(recording.acc, samples, np.maximum) - _trailing(recording.acc, samples, np.minimum)
-    rest = (rate <= REST_GYRO) & (spread.max(axis=1) <= REST_ACC)
+    spinning = _window_any(np.linalg.norm(recording.gyro, axis=1) > REST_GYRO, samples)
+    acc = np.ascontiguousarray(recording.acc.T)           # one contiguous row per axis: faster windows
+    spread = _trailing(acc.T, samples, np.maximum) - _trailing(acc.T, samples, np.minimum)
+    rest = ~spinning & (spread <= REST_ACC).all(axis=1)
     rest[:samples - 1] = False
     return rest
 
@@ -86,11 +96,12 @@ def masks(recording, mag_tolerance: float = MAG_NORM_TOLERANCE, dip_tolerance: f
     the module docstring."""
     mag_norm = np.linalg.norm(recording.mag, axis=1)
     first = recording.time - recording.time[0] <= REFERENCE_SECONDS
-    dip = dip_angles(recording.acc, recording.mag)
+    dip = dip_angles(recording.acc, recording.mag, mag_norm)
     m0, dip0 = np.median(mag_norm[first]), np.median(dip[first])
-    mag_ok = (np.abs(mag_norm / m0 - 1) <= mag_tolerance) & (np.abs(dip - dip0) <= dip_tolerance)
-    rest = at_rest(recording)
-    return np.column_stack([np.ones((len(recording), 3)), mag_ok, rest, rest, rest]).astype(float)
+    out = np.ones((len(recording), 7))
+    out[:, 3] = (np.abs(mag_norm / m0 - 1) <= mag_tolerance) & (np.abs(dip - dip0) <= dip_tolerance)
+    out[:, 4:] = at_rest(recording)[:, None]
+    return out
 
 
 def measurements(recording) -> np.ndarray:
