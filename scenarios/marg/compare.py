@@ -26,8 +26,8 @@ trial, the total / heading / inclination RMSE of Madgwick's filter at β = 0.041
 EKF of ``models/marg_mekf.py`` (one parameter set for every trial) and of its fixed-interval
 smoothing (``mekf_rts``: the generated error-state RTS smoother over the offline forward run of
 ``scenarios/marg/mekf_offline.py``: the same parameters, the magnetometer decided two-sided, the
-gyro read half a sample later and its scale factors estimated); ``summary.json`` holds the rows and ``mean_total_rmse_deg`` (filter name -> mean
-total RMSE over the trials):
+gyro read half a sample later and its scale factors estimated); ``summary.json`` holds the rows
+and ``mean_total_rmse_deg`` (filter name -> mean total RMSE over the trials):
 
     symkf compare marg --data broad --out results/marg
 

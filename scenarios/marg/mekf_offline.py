@@ -22,9 +22,9 @@ run's inputs and model):
 - **Gyro scale factors.** The model with the gyro's scale-factor errors as states
   (``models/marg_mekf.py``, ``build(gyro_scale=True)``: ``marg_mekf_scale``, prior 1-sigma
   ``SCALE_PRIOR_SIGMA``). Gyro-only heading drifts 0.1 deg/s through trial 01's motion (its
-  rest bias holds to 0.01 deg/s), and trials 01 and 28 turn one way for minutes (net 360 and
+  rest bias holds to 0.01 deg/s), and trials 01 and 28 turn one way for about two minutes (net 360 and
   -2520 deg of heading); the smoother fits k to the whole trial: 2.13 -> 1.64 deg (prior
-  0.1 %: 1.69). Online the states do not pay (forward mean 3.5 deg with them, 2.46 without):
+  0.1 %: 1.69). Online the states do not pay (forward mean 3.1 deg with them, 2.46 without):
   a filter cannot know k before the motion that reveals it.
 
 Everything else (masks of the accelerometer and the gyro at rest, sigmas, initialisation) is the

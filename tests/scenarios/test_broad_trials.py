@@ -170,7 +170,8 @@ def test_running_rest_window_equals_the_lag_by_lag_window_bit_for_bit():
     for short in (1, 2, 7):
         np.testing.assert_array_equal(mekf._trailing(recording.acc[:500], short, np.maximum),
                                       _trailing_by_lags(recording.acc[:500], short, np.maximum))
-    spread = _trailing_by_lags(recording.acc, samples, np.maximum) - _trailing_by_lags(recording.acc, samples, np.minimum)
+    acc = recording.acc
+    spread = _trailing_by_lags(acc, samples, np.maximum) - _trailing_by_lags(acc, samples, np.minimum)
     expected = (_trailing_by_lags(rate, samples, np.maximum) <= mekf.REST_GYRO) & (spread.max(axis=1) <= mekf.REST_ACC)
     expected[:samples - 1] = False
     rest = mekf.at_rest(recording)
