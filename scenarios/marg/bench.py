@@ -98,16 +98,24 @@ def time_form(compiled, recording, form: str, args) -> dict:
     python = make_filter(compiled, form, beta=BETA_MADGWICK, q0=filt.x)
     python.fast_path = False
     per_sample = [(time_[k - 1], dt[k], z[k], gyro[k]) for k in range(1, n_step)]   # dt[0] = 0: a run's start
+    start = {f: (f.x.copy(), f.t) for f in (filt, python)}
+
+    def restart(f):
+        """Each timed loop steps the trial from its start: the filter back to its first state and time."""
+        f.x, f.t = start[f][0], start[f][1]
 
     def api_steps(f=filt):
+        restart(f)
         for t_k, dt_k, z_k, gyro_k in per_sample:
             f.step(t_k, dt_k, z_k, "marg", u=gyro_k)
 
     def indexed_steps(f=filt):
+        restart(f)
         for k in range(1, n_step):
             f.step(time_[k - 1], dt[k], z[k], "marg", u=gyro[k])
 
     def whole_run():
+        restart(filt)
         filt.run(time_, z, "marg", u=gyro)
 
     m = min(args.reference_samples, len(recording))
@@ -146,16 +154,22 @@ def time_mekf(compiled, recording, args) -> dict:
     time, dt, gyro = recording.time, recording.dt, recording.gyro
     samples = [(time[k - 1], dt[k], z[k], mag[k], mask[k], gyro[k]) for k in range(1, n_step)]
 
+    def restart(f):
+        """Each timed loop steps the trial from its start: the filter back to its first state and time."""
+        f.x, f.P, f.t = x0, P0, float(time[0])
+
     def api_steps(f=filt):
+        restart(f)
         for t_k, dt_k, z_k, mag_k, mask_k, gyro_k in samples:
             f.step(t_k, dt_k, z_k, "marg", q=mag_k, mask=mask_k, u=gyro_k)
 
     def indexed_steps(f=filt):
+        restart(f)
         for k in range(1, n_step):
             f.step(time[k - 1], dt[k], z[k], "marg", q=mag[k], mask=mask[k], u=gyro[k])
 
     def whole_run():
-        filt.x, filt.P = x0, P0
+        restart(filt)
         filt.run(recording.time, z, "marg", q=mag, mask=mask, u=recording.gyro)
 
     steps = _interleaved_medians({"api": api_steps, "indexed": indexed_steps, "python": lambda: api_steps(python)},
