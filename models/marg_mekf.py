@@ -18,6 +18,14 @@ generated multiplicative EKF (``codegen/families/mekf.py``).
   detection of VQF: Laidig & Seel, "VQF: Highly accurate IMU orientation estimation with bias
   estimation and magnetic disturbance rejection", Information Fusion 91, 2023; masked while
   the sensor moves, decided by ``scenarios/marg/mekf.py``).
+- **With gyro scale factors** (``build(gyro_scale=True)``, model ``marg_mekf_scale``, the offline
+  pass of ``scenarios/marg/mekf_offline.py``): three more states, the scale-factor errors k of
+  the gyro axes (ω_m = (1 + k) ω + b, so the body rate is (ω_m - b) / (1 + k); constant, a
+  random walk of ``SCALE_WALK_PSD`` only to keep the smoother's P⁻ positive definite; prior
+  1-sigma ``SCALE_PRIOR_SIGMA``). In BROAD's fast, one-way rotations (trial 28 turns at 130 deg/s
+  about one axis for 100 s) a 0.3 % error is 0.4 deg/s of drift; the smoother sees the whole
+  trial and estimates k (-0.24 / -0.33 / -0.43 % on trial 01's axes, -0.34 % on trial 28's z);
+  the online filter, which must start without k, does not carry the states.
 - Magnetic disturbances are rejected by masking the heading, decided per sample by
   ``scenarios/marg/mekf.py`` (|m| or the dip angle off their values at the start of the
   recording); the accelerometer is always used, its sigma absorbing accelerations.
@@ -41,20 +49,29 @@ BIAS_WALK_PSD = 1e-11
 ACC_DIRECTION_SIGMA = 0.3
 HEADING_SIGMA = 0.4
 REST_GYRO_SIGMA = 0.003
+#: The gyro scale-factor states (``gyro_scale=True``): random-walk PSD (1/s) and prior 1-sigma (-).
+SCALE_WALK_PSD = 1e-12
+SCALE_PRIOR_SIGMA = 0.002
 
 
-def process_noise_psd() -> np.ndarray:
-    """Q in error coordinates [δθ; δb] (additive, discrete Q dt)."""
-    return np.diag([GYRO_NOISE_PSD] * 3 + [BIAS_WALK_PSD] * 3)
+def process_noise_psd(gyro_scale: bool = False) -> np.ndarray:
+    """Q in error coordinates [δθ; δb] (and δk with ``gyro_scale``) (additive, discrete Q dt)."""
+    return np.diag([GYRO_NOISE_PSD] * 3 + [BIAS_WALK_PSD] * 3 + [SCALE_WALK_PSD] * (3 if gyro_scale else 0))
 
 
-def build() -> Model:
-    m = Model("marg_mekf", "MARG orientation (ENU) and gyro bias for the generated multiplicative EKF",
+def build(gyro_scale: bool = False) -> Model:
+    """The model ``marg_mekf``; with ``gyro_scale`` ``marg_mekf_scale`` (the gyro scale-factor states)."""
+    name, what = ("marg_mekf_scale", "gyro bias and scale factors") if gyro_scale else ("marg_mekf", "gyro bias")
+    m = Model(name, f"MARG orientation (ENU) and {what} for the generated multiplicative EKF",
               paper="BROAD benchmark, Laidig et al., Data 6(7) 2021; MEKF: Lefferts, Markley & Shuster 1982")
     q = m.quaternion_state("q", "orientation of the sensor in the ENU earth frame (v_E = R(q) v_S)")
     b = ca.vertcat(*[m.state(f"b_{a}", "rad/s", f"gyro bias, sensor {a} axis") for a in "xyz"])
     gyro = ca.vertcat(*[m.input(f"gyr_{a}", "rad/s", f"gyro sample, sensor {a} axis") for a in "xyz"])
-    m.set_dynamics({"q": 0.5 * hamilton(q, ca.vertcat(gyro - b, 0)), "b_x": 0, "b_y": 0, "b_z": 0})
+    rate, constant = gyro - b, {f"b_{a}": 0 for a in "xyz"}
+    if gyro_scale:
+        k = ca.vertcat(*[m.state(f"k_{a}", "-", f"gyro scale-factor error, sensor {a} axis") for a in "xyz"])
+        rate, constant = rate / (1 + k), {**constant, **{f"k_{a}": 0 for a in "xyz"}}
+    m.set_dynamics({"q": 0.5 * hamilton(q, ca.vertcat(rate, 0)), **constant})
     mag = ca.vertcat(*m.measurement_params("marg", [(f"mag_{a}", "uT", f"magnetometer sample, sensor {a} axis")
                                                     for a in "xyz"]))
     up = rotation_matrix(q).T @ ca.DM([0, 0, 1])

@@ -19,6 +19,9 @@
   and ``step_api_python`` (``Filter.step``, as above; after its first step the fast path calls
   the trusted kernel, runtime/fastpath.py) and ``run`` (``Filter.run`` over the whole trial:
   contract checks, masks and the C loop); its BROAD RMSE per trial.
+- ``pipeline_vs_vqf``: the whole ``symkf compare marg`` pipeline of the MEKF (masks + run) per
+  sample against VQF's ``updateBatch`` on the same trial, side by side (``scenarios/marg/vqf_bench.py``;
+  skipped with a message when the vqf package is missing).
 - ``--instructions``: the MEKF's C API per sample under callgrind (deterministic; predict, update,
   step and run, and the step kernel's share of the run: ``scenarios/marg/instructions.py``).
 - RMSE per BROAD trial (total / heading / inclination over movement phases, deg) at β = 0.041
@@ -39,9 +42,10 @@ from symkf.scenarios import timing
 from symkf.scenarios.report import emit
 from symkf.scenarios.marg.data import data_dir, load_recording, run_recording
 from symkf.scenarios.marg.broad_metric import broad_errors
-from . import mekf
+from . import mekf, mekf_offline
 from .instructions import count_instructions
 from .compare import SWEEP_BETAS
+from .vqf_bench import pipeline_vs_vqf, print_table as print_vqf_table
 
 FORMS = ("simple", "full")
 
@@ -94,16 +98,24 @@ def time_form(compiled, recording, form: str, args) -> dict:
     python = make_filter(compiled, form, beta=BETA_MADGWICK, q0=filt.x)
     python.fast_path = False
     per_sample = [(time_[k - 1], dt[k], z[k], gyro[k]) for k in range(1, n_step)]   # dt[0] = 0: a run's start
+    start = {f: (f.x.copy(), f.t) for f in (filt, python)}
+
+    def restart(f):
+        """Each timed loop steps the trial from its start: the filter back to its first state and time."""
+        f.x, f.t = start[f][0], start[f][1]
 
     def api_steps(f=filt):
+        restart(f)
         for t_k, dt_k, z_k, gyro_k in per_sample:
             f.step(t_k, dt_k, z_k, "marg", u=gyro_k)
 
     def indexed_steps(f=filt):
+        restart(f)
         for k in range(1, n_step):
             f.step(time_[k - 1], dt[k], z[k], "marg", u=gyro[k])
 
     def whole_run():
+        restart(filt)
         filt.run(time_, z, "marg", u=gyro)
 
     m = min(args.reference_samples, len(recording))
@@ -142,16 +154,22 @@ def time_mekf(compiled, recording, args) -> dict:
     time, dt, gyro = recording.time, recording.dt, recording.gyro
     samples = [(time[k - 1], dt[k], z[k], mag[k], mask[k], gyro[k]) for k in range(1, n_step)]
 
+    def restart(f):
+        """Each timed loop steps the trial from its start: the filter back to its first state and time."""
+        f.x, f.P, f.t = x0, P0, float(time[0])
+
     def api_steps(f=filt):
+        restart(f)
         for t_k, dt_k, z_k, mag_k, mask_k, gyro_k in samples:
             f.step(t_k, dt_k, z_k, "marg", q=mag_k, mask=mask_k, u=gyro_k)
 
     def indexed_steps(f=filt):
+        restart(f)
         for k in range(1, n_step):
             f.step(time[k - 1], dt[k], z[k], "marg", q=mag[k], mask=mask[k], u=gyro[k])
 
     def whole_run():
-        filt.x, filt.P = x0, P0
+        restart(filt)
         filt.run(recording.time, z, "marg", q=mag, mask=mask, u=recording.gyro)
 
     steps = _interleaved_medians({"api": api_steps, "indexed": indexed_steps, "python": lambda: api_steps(python)},
@@ -188,6 +206,7 @@ def run(args) -> int:
         result["timing_us_per_sample"][form] = time_form(compiled, first, form, args)
     mekf_model = load("marg_mekf", backend="compiled")
     result["timing_us_per_sample"]["mekf"] = time_mekf(mekf_model, first, args)
+    result["pipeline_vs_vqf"] = pipeline_vs_vqf(mekf_model, mekf_offline.load_model(), first, args.repeats)
     if getattr(args, "instructions", False):
         result["mekf_instructions_per_sample"] = count_instructions(build_model("marg_mekf").directory, first)
     result["mekf_rmse_deg"] = {}
@@ -209,6 +228,7 @@ def _print_tables(result: dict) -> None:
                      if "numpy_reference_us" in t else f"{'-':>10} {'-':>8}")
         print(f"{form:8} {t['step_bound_us']:13.3f} {t['step_api_us']:11.2f} {t['step_api_indexed_us']:10.2f} "
               f"{t['step_api_python_us']:14.2f} {t['run_us']:8.3f} {reference}")
+    print_vqf_table(result["pipeline_vs_vqf"], result["timing_trial"])
     counts = result.get("mekf_instructions_per_sample")
     if counts:
         print(f"\nmekf instructions per sample (callgrind, {result['timing_trial']}, C API): "

@@ -24,9 +24,11 @@ the paper's claim that a larger β brings high-frequency oscillation:
 trial, the total / heading / inclination RMSE of Madgwick's filter at β = 0.041, at its best β
 (the sweep grid plus 0.041, chosen per trial: an oracle), and of the generated multiplicative
 EKF of ``models/marg_mekf.py`` (one parameter set for every trial) and of its fixed-interval
-smoothing (``mekf_rts``: the generated error-state RTS smoother over the same run, the same
-parameters); ``series.nc`` holds the rows (``rmse``: trial x filter x metric) and ``summary.json``
-``mean_total_rmse_deg`` (filter name -> mean total RMSE over the trials):
+smoothing (``mekf_rts``: the generated error-state RTS smoother over the offline forward run of
+``scenarios/marg/mekf_offline.py``: the same parameters, the magnetometer decided two-sided, the
+gyro read half a sample later and its scale factors estimated); ``series.nc`` holds the rows
+(``rmse``: trial x filter x metric) and ``summary.json`` ``mean_total_rmse_deg`` (filter name ->
+mean total RMSE over the trials):
 
     symkf compare marg --data broad --out results/marg
 
@@ -49,7 +51,7 @@ from symkf.models.marg import ALPHA_DEFAULT, BETA_MADGWICK
 from symkf.runtime import load
 from symkf.scenarios.marg.filter import make_filter
 from symkf.scenarios import results as R
-from symkf.scenarios.marg import mekf, series
+from symkf.scenarios.marg import mekf, mekf_offline, series
 from symkf.scenarios.marg.data import (WHERE_BROAD, WHERE_XIO, Recording, broad_trials, data_dir, load_recording,
                                        run_recording)
 from symkf.scenarios.marg.broad_metric import broad_errors, error_rotation_vectors, euler_angles, from_enu, to_enu
@@ -235,18 +237,21 @@ def _print_table(summary: dict) -> None:
 FILTERS = ("madgwick_0.041", "madgwick_best", "mekf", "mekf_rts")
 
 
-def trial_row(madgwick, mekf_model, recording: Recording, args) -> dict:
+def trial_row(madgwick, mekf_model, offline_model, recording: Recording, args) -> dict:
     """One trial: Madgwick at β = 0.041, at its best β of the grid, and the generated MEKF."""
     betas = sorted(set(SWEEP_BETAS.tolist()) | {BETA_MADGWICK})
     errors = {beta: broad_errors(run_recording(madgwick, make_filter(madgwick, args.form, beta=beta, alpha=args.alpha),
                                                recording).x, recording) for beta in betas}
     best = min(betas, key=lambda beta: errors[beta]["total"])
-    result = mekf.run_recording(mekf_model, recording, smoothed=True)
+    result = mekf.run_recording(mekf_model, recording)
+    smoothed = mekf_offline.smooth_recording(offline_model, recording)
     return {"trial": recording.name, "samples": len(recording), "best_beta": best,
             "madgwick_0.041": errors[BETA_MADGWICK], "madgwick_best": errors[best],
             "mekf": broad_errors(result.q, recording, frame="enu"),
-            "mekf_rts": broad_errors(result.x_smooth[:, :4], recording, frame="enu"),
+            "mekf_rts": broad_errors(smoothed.x_smooth[:, :4], recording, frame="enu"),
             "mekf_failed_steps": int(result.failed_steps.size), "mekf_gated_steps": result.gated_steps,
+            "mekf_rts_failed_steps": int(smoothed.failed_steps.size),
+            "mekf_rts_gyro_scale_error_percent": (100 * smoothed.x_smooth[0, 7:]).tolist(),
             "mekf_heading_used_fraction": float(mekf.masks(recording)[:, 3].mean())}
 
 
@@ -261,11 +266,11 @@ def run_trials(args) -> int:
     if missing:
         print(f"symkf compare marg: {missing} have no optical reference")
         return 1
-    madgwick, mekf_model = load("marg"), load("marg_mekf")
+    madgwick, mekf_model, offline_model = load("marg"), load("marg_mekf"), mekf_offline.load_model()
     rows = []
     for recording in recordings:
         try:
-            rows.append(trial_row(madgwick, mekf_model, recording, args))
+            rows.append(trial_row(madgwick, mekf_model, offline_model, recording, args))
         except ValueError as exc:          # e.g. NaN IMU samples, or no movement phase to score
             detail = str(exc).removeprefix(f"{recording.name}: ")
             print(f"symkf compare marg: trial {recording.name}: {detail}")

@@ -27,6 +27,7 @@ three BROAD trials it is reported on (see the README's MARG section for neighbou
 from __future__ import annotations
 
 import numpy as np
+from scipy.ndimage import maximum_filter1d, minimum_filter1d
 from scipy.spatial.transform import Rotation
 
 from symkf.models import marg_mekf
@@ -53,28 +54,39 @@ def initial_orientation(acc: np.ndarray, mag: np.ndarray) -> np.ndarray:
     return Rotation.from_matrix(np.vstack([east, north, up])).as_quat()
 
 
-def dip_angles(acc: np.ndarray, mag: np.ndarray) -> np.ndarray:
-    """Angle (rad) of the field below the horizontal plane, per sample, using a/|a| as up."""
+def dip_angles(acc: np.ndarray, mag: np.ndarray, mag_norm: np.ndarray | None = None) -> np.ndarray:
+    """Angle (rad) of the field below the horizontal plane, per sample, using a/|a| as up
+    (``mag_norm``: |m| per sample when the caller has it)."""
     up = acc / np.linalg.norm(acc, axis=1, keepdims=True)
-    m = mag / np.linalg.norm(mag, axis=1, keepdims=True)
+    m = mag / (np.linalg.norm(mag, axis=1) if mag_norm is None else mag_norm)[:, None]
     return np.arcsin(np.clip(-np.sum(up * m, axis=1), -1, 1))
 
 
 def _trailing(values: np.ndarray, samples: int, reduce) -> np.ndarray:
-    """Per sample, ``reduce`` (np.maximum or np.minimum) over the trailing window of ``samples``
-    (the sample itself and the ones before it; shorter at the start): needs nothing later."""
-    out = values.copy()
-    for lag in range(1, samples):
-        out[lag:] = reduce(out[lag:], values[:-lag])
-    return out
+    """Per sample, the max (``reduce`` np.maximum) or min (np.minimum) over the trailing window of
+    ``samples`` (the sample itself and the ones before it; shorter at the start): needs nothing
+    later. A running filter (scipy.ndimage, O(N)): the window ends at the sample (origin
+    (samples - 1) // 2), and the "nearest" padding before the start repeats the first sample,
+    which the shorter window holds anyway, so the result is exactly the short window's."""
+    running = {np.maximum: maximum_filter1d, np.minimum: minimum_filter1d}[reduce]
+    return running(values, size=samples, axis=0, origin=(samples - 1) // 2, mode="nearest")
+
+
+def _window_any(flags: np.ndarray, samples: int) -> np.ndarray:
+    """Per sample, whether any of ``flags`` in its trailing window of ``samples`` is set (counts
+    from one cumulative sum: O(N), the same booleans as a running max of the flags)."""
+    count = np.cumsum(flags, dtype=np.int64)
+    count[samples:] -= count[:-samples].copy()
+    return count > 0
 
 
 def at_rest(recording) -> np.ndarray:
     """(N,) bool: the sensor is at rest by the rule of :data:`REST_SECONDS` (False for the first window)."""
     samples = max(1, int(round(REST_SECONDS / np.median(np.diff(recording.time)))))
-    rate = _trailing(np.linalg.norm(recording.gyro, axis=1), samples, np.maximum)
-    spread = _trailing(recording.acc, samples, np.maximum) - _trailing(recording.acc, samples, np.minimum)
-    rest = (rate <= REST_GYRO) & (spread.max(axis=1) <= REST_ACC)
+    spinning = _window_any(np.linalg.norm(recording.gyro, axis=1) > REST_GYRO, samples)
+    acc = np.ascontiguousarray(recording.acc.T)           # one contiguous row per axis: faster windows
+    spread = _trailing(acc.T, samples, np.maximum) - _trailing(acc.T, samples, np.minimum)
+    rest = ~spinning & (spread <= REST_ACC).all(axis=1)
     rest[:samples - 1] = False
     return rest
 
@@ -84,11 +96,12 @@ def masks(recording, mag_tolerance: float = MAG_NORM_TOLERANCE, dip_tolerance: f
     the module docstring."""
     mag_norm = np.linalg.norm(recording.mag, axis=1)
     first = recording.time - recording.time[0] <= REFERENCE_SECONDS
-    dip = dip_angles(recording.acc, recording.mag)
+    dip = dip_angles(recording.acc, recording.mag, mag_norm)
     m0, dip0 = np.median(mag_norm[first]), np.median(dip[first])
-    mag_ok = (np.abs(mag_norm / m0 - 1) <= mag_tolerance) & (np.abs(dip - dip0) <= dip_tolerance)
-    rest = at_rest(recording)
-    return np.column_stack([np.ones((len(recording), 3)), mag_ok, rest, rest, rest]).astype(float)
+    out = np.ones((len(recording), 7))
+    out[:, 3] = (np.abs(mag_norm / m0 - 1) <= mag_tolerance) & (np.abs(dip - dip0) <= dip_tolerance)
+    out[:, 4:] = at_rest(recording)[:, None]
+    return out
 
 
 def measurements(recording) -> np.ndarray:
@@ -105,10 +118,9 @@ def make_filter(compiled, recording, gate: float | None = None):
                            t0=float(recording.time[0]), **options)
 
 
-def run_recording(compiled, recording, gate: float | None = None, smoothed: bool = False) -> RunResult:
-    """Filter a whole recording in one compiled run; ``result.q`` is sensor -> ENU. ``smoothed``:
-    also the fixed-interval smoothing of that run (the MEKF's error-state RTS smoother: a
-    SmoothedRun whose ``x_smooth[:, :4]`` is sensor -> ENU), with the same parameters."""
+def run_recording(compiled, recording, gate: float | None = None) -> RunResult:
+    """Filter a whole recording in one compiled run (the online filter: every rule causal);
+    ``result.q`` is sensor -> ENU. Its fixed-interval smoothing: ``mekf_offline.py``."""
     filt = make_filter(compiled, recording, gate)
     return filt.run(recording.time, measurements(recording), "marg", q=recording.mag, mask=masks(recording),
-                    u=recording.gyro, smooth=smoothed)
+                    u=recording.gyro)

@@ -75,5 +75,10 @@ def trials_series(rows: list[dict], filters: tuple[str, ...], attrs: dict) -> R.
         "mekf_gated_steps": R.var(["trial"], [r["mekf_gated_steps"] for r in rows], "1"),
         "mekf_heading_used_fraction": R.var(["trial"], [r["mekf_heading_used_fraction"] for r in rows], "1",
                                             "fraction of samples whose magnetometer heading the MEKF used"),
+        "mekf_rts_failed_steps": R.var(["trial"], [r["mekf_rts_failed_steps"] for r in rows], "1",
+                                       "steps refused in the smoother's offline forward pass"),
+        "axis": R.var(["axis"], ["x", "y", "z"]),
+        "mekf_rts_gyro_scale_error": R.var(["trial", "axis"], [r["mekf_rts_gyro_scale_error_percent"] for r in rows],
+                                           "%", "gyro scale-factor error estimated by the smoother, at the start"),
     }
     return R.Series("marg", v, {"kind": "trials", **attrs})
