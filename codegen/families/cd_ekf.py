@@ -36,6 +36,7 @@ from .. import linalg
 from ..discretize import CALLED_OPTIONS, continuous_dynamics
 from ..model_functions import ModelFunctions, Symbols
 from ..spec import Family, Kernel
+from .rts import PER_STEP, SMOOTHED, backward_step, smoothed_symbols
 from .framework import (all_finite, compose_step, filter_spec, gated, innovation, masked_finite, masked_noise,
                         register_family, update_status)
 
@@ -75,19 +76,29 @@ def augmented_derivative(model: Model) -> ca.Function:
 
 
 def rk4_step(model: Model, derivative: ca.Function) -> ca.Function:
-    """One RK4 step of the augmented system over h (inputs held)."""
-    n, sym = model.nx, ca.MX.sym        # MX: the vector algebra becomes C loops, not unrolled lines
-    t, h, x = sym("t"), sym("h"), sym("x", n)
-    ptri, Q = sym("Ptri", n * (n + 1) // 2), sym("Q", n, n)
-    u, p = sym("u", model.u.shape[0]), sym("p", model.p.shape[0])
-    k1x, k1p = derivative(t, x, ptri, u, p, Q)
-    k2x, k2p = derivative(t + h / 2, x + h / 2 * k1x, ptri + h / 2 * k1p, u, p, Q)
-    k3x, k3p = derivative(t + h / 2, x + h / 2 * k2x, ptri + h / 2 * k2p, u, p, Q)
-    k4x, k4p = derivative(t + h, x + h * k3x, ptri + h * k3p, u, p, Q)
-    x_next = x + h / 6 * (k1x + 2 * k2x + 2 * k3x + k4x)
-    p_next = ptri + h / 6 * (k1p + 2 * k2p + 2 * k3p + k4p)
-    return ca.Function(f"{model.name}_cd_rk4", [t, h, x, ptri, u, p, Q], [x_next, p_next],
-                       ["t", "h", "x", "Ptri", "u", "p", "Q"], ["x", "Ptri"],
+    """One RK4 step of the augmented system (x, triu P) over h (inputs held)."""
+    n = model.nx
+    return rk4_of(model, derivative, f"{model.name}_cd_rk4", [("x", n, 1), ("Ptri", n * (n + 1) // 2, 1)])
+
+
+def rk4_of(model: Model, derivative: ca.Function, name: str, states: list[tuple[str, int, int]]) -> ca.Function:
+    """One RK4 step over h of the states ``(name, rows, columns)`` whose derivative is
+    ``derivative(t, *states, u, p, Q)`` (inputs held), as a never-inlined MX function."""
+    sym = ca.MX.sym                     # MX: the vector algebra becomes C loops, not unrolled lines
+    t, h = sym("t"), sym("h")
+    y = [sym(label, rows, cols) for label, rows, cols in states]
+    u, p, Q = sym("u", model.u.shape[0]), sym("p", model.p.shape[0]), sym("Q", model.nx, model.nx)
+
+    def slope(time, values):
+        out = derivative(time, *values, u, p, Q)
+        return list(out) if isinstance(out, (list, tuple)) else [out]
+    k1 = slope(t, y)
+    k2 = slope(t + h / 2, [a + h / 2 * b for a, b in zip(y, k1)])
+    k3 = slope(t + h / 2, [a + h / 2 * b for a, b in zip(y, k2)])
+    k4 = slope(t + h, [a + h * b for a, b in zip(y, k3)])
+    y_next = [a + h / 6 * (b1 + 2 * b2 + 2 * b3 + b4) for a, b1, b2, b3, b4 in zip(y, k1, k2, k3, k4)]
+    labels = [label for label, _, _ in states]
+    return ca.Function(name, [t, h, *y, u, p, Q], y_next, ["t", "h", *labels, "u", "p", "Q"], labels,
                        {"allow_duplicate_io_names": True, "never_inline": True})
 
 
@@ -117,6 +128,68 @@ def predict_function(model: Model, substeps: int) -> ca.Function:
     return ca.Function(f"{model.name}_k_{FAMILY}_predict", [t, dt, x0, P, u, p, Q],
                        [x, ca.reshape(ptri[full], n, n), ca.MX(0)], names, ["x", "P", "status"],
                        {"allow_duplicate_io_names": True})
+
+
+# ---------------------------------------------------------------------- RTS smoother
+def transition_derivative(model: Model) -> ca.Function:
+    """(t, x, Ptri, Phi, u, p, Q) -> (a(x), triu(A P + P A^T + Q), A Phi): the augmented system of
+    :func:`augmented_derivative` with the state-transition matrix, dPhi/dt = A(x(t)) Phi."""
+    n = model.nx
+    f = continuous_dynamics(model)
+    t, x, u, p = ca.SX.sym("t"), ca.SX.sym("x", n), ca.SX.sym("u", model.u.shape[0]), ca.SX.sym("p", model.p.shape[0])
+    ptri, Phi, Q = ca.SX.sym("Ptri", n * (n + 1) // 2), ca.SX.sym("Phi", n, n), ca.SX.sym("Q", n, n)
+    xdot = f(t, x, u, p, ca.DM.zeros(model.w.shape[0]))
+    A = ca.jacobian(xdot, x)                       # sparse, as in the forward pass
+    AP = A @ from_upper_triangle(ptri, n)
+    return ca.Function(f"{model.name}_cd_transition_derivative", [t, x, ptri, Phi, u, p, Q],
+                       [xdot, upper_triangle(AP + AP.T + Q), A @ Phi],
+                       ["t", "x", "Ptri", "Phi", "u", "p", "Q"], ["xdot", "Ptri_dot", "Phi_dot"], CALLED_OPTIONS)
+
+
+def transition_function(model: Model, substeps: int):
+    """(t, dt, x, P, u, p, Q) -> x^-, P^- (the forward time update: same RK4, same sub-steps) and
+    Phi = d x^- / d x(t) integrated alongside them from Phi(t) = I, as MX expressions."""
+    n, sym = model.nx, ca.MX.sym
+    args = {"t": sym("t"), "dt": sym("dt"), "x": sym("x", n), "P": sym("P", n, n), "u": sym("u", model.u.shape[0]),
+            "p": sym("p", model.p.shape[0]), "Q": sym("Q", n, n)}
+    step = rk4_of(model, transition_derivative(model), f"{model.name}_cd_rk4_transition",
+                  [("x", n, 1), ("Ptri", n * (n + 1) // 2, 1), ("Phi", n, n)])
+    upper, full = triangle_indices(n)
+    h = args["dt"] / substeps
+    x, ptri, Phi = args["x"], ca.vec(args["P"])[upper], ca.MX.eye(n)
+    for i in range(substeps):
+        x, ptri, Phi = step(args["t"] + i * h, h, x, ptri, Phi, args["u"], args["p"], args["Q"])
+    return args, x, ca.reshape(ptri[full], n, n), Phi
+
+
+def backward_function(n: int, prefix: str) -> ca.Function:
+    """(x, P, xs, Ps, x^-, P^-, Phi) -> x^s_k, P^s_k, status: the RTS step of codegen/families/rts.py
+    with D = P Phi^T (G = P Phi^T (P^-)^-1 by Cholesky of P^-), an SX function called once."""
+    sx = ca.SX.sym
+    x, P, xs, Ps, x_pred, P_pred, Phi = (sx("x", n), sx("P", n, n), sx("xs", n), sx("Ps", n, n), sx("x_pred", n),
+                                         sx("P_pred", n, n), sx("Phi", n, n))
+    outputs = backward_step(x, P, {"xs": xs, "Ps": Ps}, x_pred, P_pred, P @ Phi.T, linalg.psd_flag(P))
+    return ca.Function(f"{prefix}_cd_backward_{n}", [x, P, xs, Ps, x_pred, P_pred, Phi], [e for _, e in outputs],
+                       ["x", "P", "xs", "Ps", "x_pred", "P_pred", "Phi"], [k for k, _ in outputs], CALLED_OPTIONS)
+
+
+def smooth_kernel(model: Model, symbols: Symbols, substeps: int) -> Kernel:
+    """The continuous-discrete RTS backward step from step k + 1 to k: the time update of row k
+    over step k + 1 recomputed with its transition matrix Phi, then G = P Phi^T (P^-)^-1."""
+    args, x_pred, P_pred, Phi = transition_function(model, substeps)
+    n = model.nx
+    smoothed_sym, smoothed_arg = smoothed_symbols(symbols, ca.SX(n, n), symbols.arg["P"].unit)
+    xs, Ps = ca.MX.sym("xs", n), ca.MX.sym("Ps", n, n)
+    out = backward_function(n, model.name)(args["x"], args["P"], xs, Ps, x_pred, P_pred, Phi)
+    names = list(args) + list(SMOOTHED)
+    function = ca.Function(f"{model.name}_k_{FAMILY}_smooth", [*args.values(), xs, Ps], list(out), names,
+                           ["xs", "Ps", "status"], {"allow_duplicate_io_names": True})
+    inputs = tuple(symbols.arg[a] for a in args) + tuple(smoothed_arg[a] for a in SMOOTHED)
+    return Kernel(f"{FAMILY}_smooth", function,
+                  "Continuous-discrete EKF RTS smoother: one backward step from step k + 1 to k (x-, P- and "
+                  f"Phi = dx-/dx by RK4, {substeps} sub-step(s); G = P Phi^T (P-)^-1).",
+                  inputs, (smoothed_arg["xs"], smoothed_arg["Ps"], symbols.arg["status"]),
+                  per_step=tuple(a for a in args if a in PER_STEP), backward=SMOOTHED)
 
 
 def measurement_jacobian(model: Model, name: str) -> ca.Function:
@@ -205,7 +278,8 @@ def cd_ekf_kernels(model: Model, symbols: Symbols, functions: ModelFunctions) ->
                         tuple(args[a] for a in ("t", "x", "P", "u", "p", "q", "z", "mask", "R", "gate")),
                         tuple(args[a] for a in ("x", "P", "y", "S", "status")))
         kernels += [update, compose_step(f"{FAMILY}_step_{name}", predict, update)]
-    return Family(kernels, [filter_spec(FAMILY, FAMILY, kernels, model.measurements)])
+    kernels.append(smooth_kernel(model, symbols, substeps))
+    return Family(kernels, [filter_spec(FAMILY, FAMILY, kernels, model.measurements, smooth=f"{FAMILY}_smooth")])
 
 
 register_family(FAMILY, cd_ekf_kernels)
