@@ -35,8 +35,8 @@ from symkf.models.base import Model
 from .. import linalg
 from ..discretize import CALLED_OPTIONS, continuous_dynamics
 from ..model_functions import ModelFunctions, Symbols
-from ..spec import Family, Kernel
-from .rts import PER_STEP, SMOOTHED, backward_step, smoothed_symbols
+from ..spec import STATUS_NOT_PD, Family, Kernel
+from .rts import PER_STEP, SMOOTHED, smoothed_symbols
 from .framework import (all_finite, compose_step, filter_spec, gated, innovation, masked_finite, masked_noise,
                         register_family, update_status)
 
@@ -162,15 +162,27 @@ def transition_function(model: Model, substeps: int):
     return args, x, ca.reshape(ptri[full], n, n), Phi
 
 
-def backward_function(n: int, prefix: str) -> ca.Function:
+def backward_function(n: int, prefix: str, psd: ca.Function):
     """(x, P, xs, Ps, x^-, P^-, Phi) -> x^s_k, P^s_k, status: the RTS step of codegen/families/rts.py
-    with D = P Phi^T (G = P Phi^T (P^-)^-1 by Cholesky of P^-), an SX function called once."""
-    sx = ca.SX.sym
-    x, P, xs, Ps, x_pred, P_pred, Phi = (sx("x", n), sx("P", n, n), sx("xs", n), sx("Ps", n, n), sx("x_pred", n),
-                                         sx("P_pred", n, n), sx("Phi", n, n))
-    outputs = backward_step(x, P, {"xs": xs, "Ps": Ps}, x_pred, P_pred, P @ Phi.T, linalg.psd_flag(P))
-    return ca.Function(f"{prefix}_cd_backward_{n}", [x, P, xs, Ps, x_pred, P_pred, Phi], [e for _, e in outputs],
-                       ["x", "P", "xs", "Ps", "x_pred", "P_pred", "Phi"], [k for k, _ in outputs], CALLED_OPTIONS)
+    with D = P Phi^T, written in MX like this family's update (the n x n products become C loops,
+    not n^3 unrolled lines): G^T = (P^-)^-1 Phi P by Cholesky of P^- (an SX function) and one
+    SX triangular solve mapped over the n columns; P^s_k = P_k + G (P^s_{k+1} - P^-) G^T, symmetrised.
+    Status NOT_PD unless P_k is PSD (``psd``) and P^- positive definite."""
+    A, b = ca.SX.sym("A", n, n), ca.SX.sym("b", n)
+    L, ok = linalg.cholesky(A)
+    factor = ca.Function(f"{prefix}_cd_cholesky_{n}", [A], [L, ok], ["A"], ["L", "ok"], CALLED_OPTIONS)
+    Ls = ca.SX.sym("L", n, n)
+    solve = ca.Function(f"{prefix}_cd_cholesky_solve_{n}", [Ls, b], [linalg.cholesky_solve(Ls, b)], ["L", "b"], ["x"],
+                        CALLED_OPTIONS).map(n, "serial")
+    names = ["x", "P", "xs", "Ps", "x_pred", "P_pred", "Phi"]
+    x, P, xs, Ps, x_pred, P_pred, Phi = (ca.MX.sym(name, n, 1 if name.startswith("x") else n) for name in names)
+    L, ok_pred = factor(P_pred)
+    Gt = solve(L, ca.mtimes(Phi, P))                     # G^T = (P^-)^-1 D^T, D^T = Phi P (P symmetric)
+    change = ca.mtimes(ca.mtimes(Gt.T, Ps - P_pred), Gt)
+    status = ca.if_else(ok_pred * psd(P), 0, STATUS_NOT_PD)
+    return ca.Function(f"{prefix}_cd_backward_{n}", [x, P, xs, Ps, x_pred, P_pred, Phi],
+                       [x + ca.mtimes(Gt.T, xs - x_pred), 0.5 * (P + P.T) + 0.5 * (change + change.T), status],
+                       names, ["xs", "Ps", "status"], {"allow_duplicate_io_names": True, "never_inline": True})
 
 
 def smooth_kernel(model: Model, symbols: Symbols, substeps: int) -> Kernel:
@@ -180,7 +192,7 @@ def smooth_kernel(model: Model, symbols: Symbols, substeps: int) -> Kernel:
     n = model.nx
     smoothed_sym, smoothed_arg = smoothed_symbols(symbols, ca.SX(n, n), symbols.arg["P"].unit)
     xs, Ps = ca.MX.sym("xs", n), ca.MX.sym("Ps", n, n)
-    out = backward_function(n, model.name)(args["x"], args["P"], xs, Ps, x_pred, P_pred, Phi)
+    out = backward_function(n, model.name, covariance_check(n, model.name))(args["x"], args["P"], xs, Ps, x_pred, P_pred, Phi)
     names = list(args) + list(SMOOTHED)
     function = ca.Function(f"{model.name}_k_{FAMILY}_smooth", [*args.values(), xs, Ps], list(out), names,
                            ["xs", "Ps", "status"], {"allow_duplicate_io_names": True})
