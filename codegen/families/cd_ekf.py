@@ -167,7 +167,7 @@ def backward_function(n: int, prefix: str, psd: ca.Function):
     with D = P Phi^T, written in MX like this family's update (the n x n products become C loops,
     not n^3 unrolled lines): G^T = (P^-)^-1 Phi P by Cholesky of P^- (an SX function) and one
     SX triangular solve mapped over the n columns; P^s_k = P_k + G (P^s_{k+1} - P^-) G^T, symmetrised.
-    Status NOT_PD unless P_k is PSD (``psd``) and P^- positive definite."""
+    Status NOT_PD unless P_k and P^s_k are PSD (``psd``) and P^- is positive definite."""
     A, b = ca.SX.sym("A", n, n), ca.SX.sym("b", n)
     L, ok = linalg.cholesky(A)
     factor = ca.Function(f"{prefix}_cd_cholesky_{n}", [A], [L, ok], ["A"], ["L", "ok"], CALLED_OPTIONS)
@@ -179,9 +179,10 @@ def backward_function(n: int, prefix: str, psd: ca.Function):
     L, ok_pred = factor(P_pred)
     Gt = solve(L, ca.mtimes(Phi, P))                     # G^T = (P^-)^-1 D^T, D^T = Phi P (P symmetric)
     change = ca.mtimes(ca.mtimes(Gt.T, Ps - P_pred), Gt)
-    status = ca.if_else(ok_pred * psd(P), 0, STATUS_NOT_PD)
+    P_out = 0.5 * (P + P.T) + 0.5 * (change + change.T)
+    status = ca.if_else(ok_pred * psd(P) * psd(P_out), 0, STATUS_NOT_PD)
     return ca.Function(f"{prefix}_cd_backward_{n}", [x, P, xs, Ps, x_pred, P_pred, Phi],
-                       [x + ca.mtimes(Gt.T, xs - x_pred), 0.5 * (P + P.T) + 0.5 * (change + change.T), status],
+                       [x + ca.mtimes(Gt.T, xs - x_pred), P_out, status],
                        names, ["xs", "Ps", "status"], {"allow_duplicate_io_names": True, "never_inline": True})
 
 

@@ -109,11 +109,13 @@ def test_refused_step_is_carried_and_failed_backward_step_is_reported(linear):
     np.testing.assert_array_equal(carried.x_smooth[j - 1], carried.x_smooth[j])
     np.testing.assert_array_equal(carried.P_smooth[j - 1], carried.P_smooth[j])
     run.P[40] = -np.eye(3)                    # not a covariance: the backward step refuses it
-    with pytest.raises(SymkfError, match=r"SYMKF_ERR_NOT_PD.*backward step\(s\) \[40\]"):
-        smooth(f, run)
+    with pytest.raises(SymkfError, match=r"SYMKF_ERR_NOT_PD.*backward step\(s\) \[40, 39\]"):
+        smooth(f, run)                        # 39 reads row 40's restart (-I): its smoothed P is not PSD
     kept = smooth(f, run, errors="keep")
-    assert kept.smooth_status[40] == STATUS_NOT_PD and np.count_nonzero(kept.smooth_status) == 1
+    assert kept.smooth_status[40] == kept.smooth_status[39] == STATUS_NOT_PD
+    assert np.count_nonzero(kept.smooth_status) == 2
     np.testing.assert_array_equal(kept.x_smooth[40], run.x[40])
+    np.testing.assert_array_equal(kept.P_smooth[39], run.P[39])
 
 
 # ---------------------------------------------------------------------- paper 003's satellite
