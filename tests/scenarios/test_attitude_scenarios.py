@@ -40,6 +40,11 @@ def test_compare_writes_figures_and_summary(tmp_path):
         assert metrics["attitude_3sigma_deg"] >= 3 * metrics["attitude_rms_deg"] / np.sqrt(3) - 1e-12
     assert np.isfinite(summary["ukf_improvement_percent"])
     assert summary["paper_claims"]["ukf_about_30_percent_better"]["claimed_percent"] == 30.0
+    rts, mekf = summary["filters"]["mekf_rts"], summary["filters"]["mekf"]
+    assert rts["failed_steps_total"] == 0                                # no refused backward step
+    assert rts["attitude_rms_deg"] < mekf["attitude_rms_deg"]            # the whole record helps
+    assert rts["transient_rms_deg_first_300s"] < 0.5 * mekf["transient_rms_deg_first_300s"]
+    assert all(summary["rts_le_filter"].values())
 
 
 def test_scenario_two_reports_the_literal_bias(tmp_path):

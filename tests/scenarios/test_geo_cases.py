@@ -46,8 +46,12 @@ def test_case2_integral_compensates_bias_and_gyro_B_failure(cases):
 
 def test_case3_ekf_converges_and_estimates_the_biases(cases):
     for claim in ("ekf_converges_in_the_2hz_loop", "gyro_bias_estimated", "noise_barely_changes_attitude",
-                  "ekf_in_the_loop_matches_no_ekf_loop", "integral_as_without_bias_once_bias_estimated"):
+                  "ekf_in_the_loop_matches_no_ekf_loop", "integral_as_without_bias_once_bias_estimated",
+                  "rts_rms_at_most_filter_rms"):
         assert verdict(cases, 3, claim), claim
+    rts = cases[3][1]["runs"]["bias_on_noise_on"]["smoother"]
+    assert rts["refused_backward_steps"] == 0
+    assert rts["rms_smoothed"]["rate"] < 0.1 * rts["rms_filtered"]["rate"]
     bias_error = cases[3][1]["runs"]["bias_on_noise_off"]["bias_estimation_error_deg_s"]
     assert bias_error < 1e-4                                       # deg/s, true biases 0.01-0.02 deg/s
 
@@ -56,6 +60,7 @@ def test_case4_ekf_controls_with_gyros_A_C_and_all_failed(cases):
     assert verdict(cases, 4, "controlled_with_gyros_AC_failed")
     assert verdict(cases, 4, "controlled_with_gyros_ABCD_failed")
     assert verdict(cases, 4, "all_failed_matches_no_failure")
+    assert verdict(cases, 4, "rts_rms_at_most_filter_rms")
 
 
 def test_compare_command_writes_summary_and_figure(tmp_path):
