@@ -80,3 +80,16 @@ def test_full_length_cases_hold_every_claim_but_the_papers_converging_pairs(case
     for claim, verdict_ in entry["claims"].items():
         expected = claim != "some_failed_pairs_converge"      # our finding: every pair diverges
         assert verdict_["value"] == expected, claim
+
+
+def test_bench_counts_instructions_of_the_smoother_beside_the_filter():
+    """Callgrind's counts per step (deterministic): the backward step integrates x, P and Phi
+    (17 x 17) and solves for the gain, so it costs more than the time update it repeats."""
+    import shutil
+    from symkf.scenarios.geo import bench
+    if not shutil.which("valgrind"):
+        pytest.skip("valgrind not installed: apt-get install valgrind")
+    counts = bench.instruction_counts()
+    assert 0 < counts["predict"] < counts["forward_step"] < counts["backward_step"]
+    assert counts["backward_over_forward"] == pytest.approx(counts["backward_step"] / counts["forward_step"])
+    assert counts["backward_step"] < 10 * counts["forward_step"]
