@@ -131,19 +131,22 @@ def predict_function(model: Model, substeps: int) -> ca.Function:
 
 
 # ---------------------------------------------------------------------- RTS smoother
-def transition_derivative(model: Model) -> ca.Function:
-    """(t, x, Ptri, Phi, u, p, Q) -> (a(x), triu(A P + P A^T + Q), A Phi): the augmented system of
-    :func:`augmented_derivative` with the state-transition matrix, dPhi/dt = A(x(t)) Phi."""
+def transition_derivative(model: Model):
+    """(t, x, Ptri, Phi, u, p, Q) -> (a(x), triu(A P + P A^T + Q), A Phi): the forward pass's own
+    :func:`augmented_derivative` (the same C function, so x^- and P^- are the forward's) and the
+    transition matrix's dPhi/dt = A(x(t)) Phi, an SX function of its own (A sparse)."""
     n = model.nx
     f = continuous_dynamics(model)
     t, x, u, p = ca.SX.sym("t"), ca.SX.sym("x", n), ca.SX.sym("u", model.u.shape[0]), ca.SX.sym("p", model.p.shape[0])
-    ptri, Phi, Q = ca.SX.sym("Ptri", n * (n + 1) // 2), ca.SX.sym("Phi", n, n), ca.SX.sym("Q", n, n)
-    xdot = f(t, x, u, p, ca.DM.zeros(model.w.shape[0]))
-    A = ca.jacobian(xdot, x)                       # sparse, as in the forward pass
-    AP = A @ from_upper_triangle(ptri, n)
-    return ca.Function(f"{model.name}_cd_transition_derivative", [t, x, ptri, Phi, u, p, Q],
-                       [xdot, upper_triangle(AP + AP.T + Q), A @ Phi],
-                       ["t", "x", "Ptri", "Phi", "u", "p", "Q"], ["xdot", "Ptri_dot", "Phi_dot"], CALLED_OPTIONS)
+    Phi = ca.SX.sym("Phi", n, n)
+    A = ca.jacobian(f(t, x, u, p, ca.DM.zeros(model.w.shape[0])), x)
+    phi_dot = ca.Function(f"{model.name}_cd_transition_derivative", [t, x, Phi, u, p], [A @ Phi],
+                          ["t", "x", "Phi", "u", "p"], ["Phi_dot"], CALLED_OPTIONS)
+    derivative = augmented_derivative(model)
+
+    def slope(t, x, ptri, Phi, u, p, Q):
+        return [*derivative(t, x, ptri, u, p, Q), phi_dot(t, x, Phi, u, p)]
+    return slope
 
 
 def transition_function(model: Model, substeps: int):
