@@ -25,7 +25,18 @@ written in MX, whose vector algebra becomes C loops. The updates are MX too: the
 the n x n algebra (H P, K U) is CasADi's sparse matrix-product loop. So the generated C grows with
 nnz(A) n, not with n^3, the number of sub-steps or the number of sensors times n^2.
 
-Kernels: ``cd_ekf_predict``, ``cd_ekf_update_<meas>``, ``cd_ekf_step_<meas>`` (predict + update).
+Fixed-interval smoothing (Rauch, Tung & Striebel 1965, the step of codegen/families/rts.py): the
+backward step from k + 1 to k repeats row k's time update over step k + 1 with the forward pass's
+own derivative function, RK4 and sub-steps, and integrates the state-transition matrix beside it,
+
+    Phi' = A(xhat(t)) Phi,  Phi(t) = I   (so Phi = d xhat^- / d xhat(t) of the RK4 step, to its order),
+
+then G = P Phi^T (P^-)^-1 by Cholesky, x^s = x + G (x^s_{k+1} - x^-), P^s = P + G (P^s_{k+1} - P^-) G^T.
+Its n x n algebra is MX (C loops) like the update's; P^- without a Cholesky factor, or P or P^s
+not PSD, is SYMKF_ERR_NOT_PD.
+
+Kernels: ``cd_ekf_predict``, ``cd_ekf_update_<meas>``, ``cd_ekf_step_<meas>`` (predict + update),
+``cd_ekf_smooth`` (the smoother's backward step; its C loop is ``<model>_cd_ekf_smooth_run``).
 """
 from __future__ import annotations
 

@@ -12,7 +12,8 @@ class NumpyCDEKF:
 
     Same equations as ``symkf.codegen.families.cd_ekf`` (Table 1): RK4 of x and the full P, then
     masked updates with P = (I - K H) P symmetrised; the model functions come from the same
-    symbolic source via :func:`reference_functions`.
+    symbolic source via :func:`reference_functions`. :meth:`transition` adds the smoother's
+    transition matrix Phi to the same RK4 (``symkf.runtime.reference.rts.cd_ekf_rts``).
     """
 
     def __init__(self, model, x0, P0, Q, R: dict, substeps: int = 1):
