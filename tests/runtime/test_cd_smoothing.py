@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy.linalg import cho_factor, cho_solve, expm
 
-from symkf.codegen.spec import STATUS_NOT_PD
+from symkf.codegen.spec import STATUS_GATED, STATUS_NOT_PD
 from symkf.models import geo_satellite as geo
 from symkf.models import get_model
 from symkf.runtime import SymkfError, load, smooth
@@ -85,6 +85,24 @@ def test_linear_cd_smoother_is_the_exact_discrete_rts(linear):
     filtered, smoothed = np.trace(run.P, axis1=1, axis2=2), np.trace(run.P_smooth, axis1=1, axis2=2)
     assert np.all(smoothed <= filtered * (1 + 1e-12))
     assert smoothed[80] < 0.5 * filtered[80]                  # inside the gap the future helps most
+
+
+def test_gated_updates_are_predictions_of_the_cd_backward_pass(linear):
+    """Outliers the chi-square gate refuses: those steps are predictions of both passes, as in
+    the exact discrete filter and smoother that skip their updates."""
+    lm = linear_model()
+    z, mask = record(seed=4)
+    z[[20, 120, 121, 170]] += 5.0                    # 17 sigma of the measurement
+    R = np.array([[lm.POSITION_SIGMA ** 2]])
+    f = linear.filter("cd_ekf", X0, P0, Q, R={"position": R})
+    f.set_gate("position", probability=0.999)
+    run = f.run_steps(np.full(N, DT), z, "position", mask=mask, smooth=True)
+    gated = run.status == STATUS_GATED
+    assert gated[[20, 120, 121, 170]].all() and gated.sum() == 4
+    x, P, xs, Ps = exact_discrete_rts(lm, z, mask * ~gated[:, None], R)
+    np.testing.assert_allclose(run.x, x, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(run.x_smooth, xs, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(run.P_smooth, Ps, rtol=0, atol=1e-12)
 
 
 def test_linear_cd_smoother_equals_numpy_reference(linear):
