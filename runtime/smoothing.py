@@ -5,7 +5,8 @@
     result.x_smooth, result.P_smooth    # smoothed (given the whole record)
 
 The backward step is the filter's ``smooth`` kernel (codegen/families/rts.py: the EKF's RTS
-smoother, the UKF's unscented RTS smoother of Särkkä 2008); its loop is the generated C
+smoother, the UKF's unscented RTS smoother of Särkkä 2008, the MEKF's error-state RTS;
+codegen/families/cd_ekf.py: the continuous-discrete EKF's, with Phi integrated); its loop is the generated C
 ``<model>_<filter>_smooth_run`` (codegen/c_backend/smooth_loop.py) or, on the CasADi-VM backend,
 the same kernel called step by step under the same rules. It reads the run's histories (x, P,
 status) and the inputs the run recorded (:attr:`RunResult.inputs`: t, dt, u per step and the

@@ -25,7 +25,18 @@ written in MX, whose vector algebra becomes C loops. The updates are MX too: the
 the n x n algebra (H P, K U) is CasADi's sparse matrix-product loop. So the generated C grows with
 nnz(A) n, not with n^3, the number of sub-steps or the number of sensors times n^2.
 
-Kernels: ``cd_ekf_predict``, ``cd_ekf_update_<meas>``, ``cd_ekf_step_<meas>`` (predict + update).
+Fixed-interval smoothing (Rauch, Tung & Striebel 1965, the step of codegen/families/rts.py): the
+backward step from k + 1 to k repeats row k's time update over step k + 1 with the forward pass's
+own derivative function, RK4 and sub-steps, and integrates the state-transition matrix beside it,
+
+    Phi' = A(xhat(t)) Phi,  Phi(t) = I   (so Phi = d xhat^- / d xhat(t) of the RK4 step, to its order),
+
+then G = P Phi^T (P^-)^-1 by Cholesky, x^s = x + G (x^s_{k+1} - x^-), P^s = P + G (P^s_{k+1} - P^-) G^T.
+Its n x n algebra is MX (C loops) like the update's; P^- without a Cholesky factor, or P or P^s
+not PSD, is SYMKF_ERR_NOT_PD.
+
+Kernels: ``cd_ekf_predict``, ``cd_ekf_update_<meas>``, ``cd_ekf_step_<meas>`` (predict + update),
+``cd_ekf_smooth`` (the smoother's backward step; its C loop is ``<model>_cd_ekf_smooth_run``).
 """
 from __future__ import annotations
 
@@ -35,7 +46,8 @@ from symkf.models.base import Model
 from .. import linalg
 from ..discretize import CALLED_OPTIONS, continuous_dynamics
 from ..model_functions import ModelFunctions, Symbols
-from ..spec import Family, Kernel
+from ..spec import STATUS_NOT_PD, Family, Kernel
+from .rts import PER_STEP, SMOOTHED, smoothed_symbols
 from .framework import (all_finite, compose_step, filter_spec, gated, innovation, masked_finite, masked_noise,
                         register_family, update_status)
 
@@ -75,19 +87,29 @@ def augmented_derivative(model: Model) -> ca.Function:
 
 
 def rk4_step(model: Model, derivative: ca.Function) -> ca.Function:
-    """One RK4 step of the augmented system over h (inputs held)."""
-    n, sym = model.nx, ca.MX.sym        # MX: the vector algebra becomes C loops, not unrolled lines
-    t, h, x = sym("t"), sym("h"), sym("x", n)
-    ptri, Q = sym("Ptri", n * (n + 1) // 2), sym("Q", n, n)
-    u, p = sym("u", model.u.shape[0]), sym("p", model.p.shape[0])
-    k1x, k1p = derivative(t, x, ptri, u, p, Q)
-    k2x, k2p = derivative(t + h / 2, x + h / 2 * k1x, ptri + h / 2 * k1p, u, p, Q)
-    k3x, k3p = derivative(t + h / 2, x + h / 2 * k2x, ptri + h / 2 * k2p, u, p, Q)
-    k4x, k4p = derivative(t + h, x + h * k3x, ptri + h * k3p, u, p, Q)
-    x_next = x + h / 6 * (k1x + 2 * k2x + 2 * k3x + k4x)
-    p_next = ptri + h / 6 * (k1p + 2 * k2p + 2 * k3p + k4p)
-    return ca.Function(f"{model.name}_cd_rk4", [t, h, x, ptri, u, p, Q], [x_next, p_next],
-                       ["t", "h", "x", "Ptri", "u", "p", "Q"], ["x", "Ptri"],
+    """One RK4 step of the augmented system (x, triu P) over h (inputs held)."""
+    n = model.nx
+    return rk4_of(model, derivative, f"{model.name}_cd_rk4", [("x", n, 1), ("Ptri", n * (n + 1) // 2, 1)])
+
+
+def rk4_of(model: Model, derivative: ca.Function, name: str, states: list[tuple[str, int, int]]) -> ca.Function:
+    """One RK4 step over h of the states ``(name, rows, columns)`` whose derivative is
+    ``derivative(t, *states, u, p, Q)`` (inputs held), as a never-inlined MX function."""
+    sym = ca.MX.sym                     # MX: the vector algebra becomes C loops, not unrolled lines
+    t, h = sym("t"), sym("h")
+    y = [sym(label, rows, cols) for label, rows, cols in states]
+    u, p, Q = sym("u", model.u.shape[0]), sym("p", model.p.shape[0]), sym("Q", model.nx, model.nx)
+
+    def slope(time, values):
+        out = derivative(time, *values, u, p, Q)
+        return list(out) if isinstance(out, (list, tuple)) else [out]
+    k1 = slope(t, y)
+    k2 = slope(t + h / 2, [a + h / 2 * b for a, b in zip(y, k1)])
+    k3 = slope(t + h / 2, [a + h / 2 * b for a, b in zip(y, k2)])
+    k4 = slope(t + h, [a + h * b for a, b in zip(y, k3)])
+    y_next = [a + h / 6 * (b1 + 2 * b2 + 2 * b3 + b4) for a, b1, b2, b3, b4 in zip(y, k1, k2, k3, k4)]
+    labels = [label for label, _, _ in states]
+    return ca.Function(name, [t, h, *y, u, p, Q], y_next, ["t", "h", *labels, "u", "p", "Q"], labels,
                        {"allow_duplicate_io_names": True, "never_inline": True})
 
 
@@ -117,6 +139,84 @@ def predict_function(model: Model, substeps: int) -> ca.Function:
     return ca.Function(f"{model.name}_k_{FAMILY}_predict", [t, dt, x0, P, u, p, Q],
                        [x, ca.reshape(ptri[full], n, n), ca.MX(0)], names, ["x", "P", "status"],
                        {"allow_duplicate_io_names": True})
+
+
+# ---------------------------------------------------------------------- RTS smoother
+def transition_derivative(model: Model):
+    """(t, x, Ptri, Phi, u, p, Q) -> (a(x), triu(A P + P A^T + Q), A Phi): the forward pass's own
+    :func:`augmented_derivative` (the same C function, so x^- and P^- are the forward's) and the
+    transition matrix's dPhi/dt = A(x(t)) Phi, an SX function of its own (A sparse)."""
+    n = model.nx
+    f = continuous_dynamics(model)
+    t, x, u, p = ca.SX.sym("t"), ca.SX.sym("x", n), ca.SX.sym("u", model.u.shape[0]), ca.SX.sym("p", model.p.shape[0])
+    Phi = ca.SX.sym("Phi", n, n)
+    A = ca.jacobian(f(t, x, u, p, ca.DM.zeros(model.w.shape[0])), x)
+    phi_dot = ca.Function(f"{model.name}_cd_transition_derivative", [t, x, Phi, u, p], [A @ Phi],
+                          ["t", "x", "Phi", "u", "p"], ["Phi_dot"], CALLED_OPTIONS)
+    derivative = augmented_derivative(model)
+
+    def slope(t, x, ptri, Phi, u, p, Q):
+        return [*derivative(t, x, ptri, u, p, Q), phi_dot(t, x, Phi, u, p)]
+    return slope
+
+
+def transition_function(model: Model, substeps: int):
+    """(t, dt, x, P, u, p, Q) -> x^-, P^- (the forward time update: same RK4, same sub-steps) and
+    Phi = d x^- / d x(t) integrated alongside them from Phi(t) = I, as MX expressions."""
+    n, sym = model.nx, ca.MX.sym
+    args = {"t": sym("t"), "dt": sym("dt"), "x": sym("x", n), "P": sym("P", n, n), "u": sym("u", model.u.shape[0]),
+            "p": sym("p", model.p.shape[0]), "Q": sym("Q", n, n)}
+    step = rk4_of(model, transition_derivative(model), f"{model.name}_cd_rk4_transition",
+                  [("x", n, 1), ("Ptri", n * (n + 1) // 2, 1), ("Phi", n, n)])
+    upper, full = triangle_indices(n)
+    h = args["dt"] / substeps
+    x, ptri, Phi = args["x"], ca.vec(args["P"])[upper], ca.MX.eye(n)
+    for i in range(substeps):
+        x, ptri, Phi = step(args["t"] + i * h, h, x, ptri, Phi, args["u"], args["p"], args["Q"])
+    return args, x, ca.reshape(ptri[full], n, n), Phi
+
+
+def backward_function(n: int, prefix: str, psd: ca.Function):
+    """(x, P, xs, Ps, x^-, P^-, Phi) -> x^s_k, P^s_k, status: the RTS step of codegen/families/rts.py
+    with D = P Phi^T, written in MX like this family's update (the n x n products become C loops,
+    not n^3 unrolled lines): G^T = (P^-)^-1 Phi P by Cholesky of P^- (an SX function) and one
+    SX triangular solve mapped over the n columns; P^s_k = P_k + G (P^s_{k+1} - P^-) G^T, symmetrised.
+    Status NOT_PD unless P_k and P^s_k are PSD (``psd``) and P^- is positive definite."""
+    A, b = ca.SX.sym("A", n, n), ca.SX.sym("b", n)
+    L, ok = linalg.cholesky(A)
+    factor = ca.Function(f"{prefix}_cd_cholesky_{n}", [A], [L, ok], ["A"], ["L", "ok"], CALLED_OPTIONS)
+    Ls = ca.SX.sym("L", n, n)
+    solve = ca.Function(f"{prefix}_cd_cholesky_solve_{n}", [Ls, b], [linalg.cholesky_solve(Ls, b)], ["L", "b"], ["x"],
+                        CALLED_OPTIONS).map(n, "serial")
+    names = ["x", "P", "xs", "Ps", "x_pred", "P_pred", "Phi"]
+    x, P, xs, Ps, x_pred, P_pred, Phi = (ca.MX.sym(name, n, 1 if name.startswith("x") else n) for name in names)
+    L, ok_pred = factor(P_pred)
+    Gt = solve(L, ca.mtimes(Phi, P))                     # G^T = (P^-)^-1 D^T, D^T = Phi P (P symmetric)
+    change = ca.mtimes(ca.mtimes(Gt.T, Ps - P_pred), Gt)
+    P_out = 0.5 * (P + P.T) + 0.5 * (change + change.T)
+    status = ca.if_else(ok_pred * psd(P) * psd(P_out), 0, STATUS_NOT_PD)
+    return ca.Function(f"{prefix}_cd_backward_{n}", [x, P, xs, Ps, x_pred, P_pred, Phi],
+                       [x + ca.mtimes(Gt.T, xs - x_pred), P_out, status],
+                       names, ["xs", "Ps", "status"], {"allow_duplicate_io_names": True, "never_inline": True})
+
+
+def smooth_kernel(model: Model, symbols: Symbols, substeps: int) -> Kernel:
+    """The continuous-discrete RTS backward step from step k + 1 to k: the time update of row k
+    over step k + 1 recomputed with its transition matrix Phi, then G = P Phi^T (P^-)^-1."""
+    args, x_pred, P_pred, Phi = transition_function(model, substeps)
+    n = model.nx
+    smoothed_sym, smoothed_arg = smoothed_symbols(symbols, ca.SX(n, n), symbols.arg["P"].unit)
+    xs, Ps = ca.MX.sym("xs", n), ca.MX.sym("Ps", n, n)
+    out = backward_function(n, model.name, covariance_check(n, model.name))(args["x"], args["P"], xs, Ps, x_pred, P_pred, Phi)
+    names = list(args) + list(SMOOTHED)
+    function = ca.Function(f"{model.name}_k_{FAMILY}_smooth", [*args.values(), xs, Ps], list(out), names,
+                           ["xs", "Ps", "status"], {"allow_duplicate_io_names": True})
+    inputs = tuple(symbols.arg[a] for a in args) + tuple(smoothed_arg[a] for a in SMOOTHED)
+    return Kernel(f"{FAMILY}_smooth", function,
+                  "Continuous-discrete EKF RTS smoother: one backward step from step k + 1 to k (x-, P- and "
+                  f"Phi = dx-/dx by RK4, {substeps} sub-step(s); G = P Phi^T (P-)^-1).",
+                  inputs, (smoothed_arg["xs"], smoothed_arg["Ps"], symbols.arg["status"]),
+                  per_step=tuple(a for a in args if a in PER_STEP), backward=SMOOTHED)
 
 
 def measurement_jacobian(model: Model, name: str) -> ca.Function:
@@ -205,7 +305,8 @@ def cd_ekf_kernels(model: Model, symbols: Symbols, functions: ModelFunctions) ->
                         tuple(args[a] for a in ("t", "x", "P", "u", "p", "q", "z", "mask", "R", "gate")),
                         tuple(args[a] for a in ("x", "P", "y", "S", "status")))
         kernels += [update, compose_step(f"{FAMILY}_step_{name}", predict, update)]
-    return Family(kernels, [filter_spec(FAMILY, FAMILY, kernels, model.measurements)])
+    kernels.append(smooth_kernel(model, symbols, substeps))
+    return Family(kernels, [filter_spec(FAMILY, FAMILY, kernels, model.measurements, smooth=f"{FAMILY}_smooth")])
 
 
 register_family(FAMILY, cd_ekf_kernels)

@@ -10,7 +10,7 @@ the family's own prediction (the same f_d, discretisation and process noise as t
         EKF: D = P_k F^T                 UKF: D = sum_i W_i (X_i - x_k)(Y_i - x^-)^T
     G     = D (P^-)^-1                   (Cholesky of P^-; not positive definite: SYMKF_ERR_NOT_PD)
     x^s_k = x_k + G (x^s_{k+1} - x^-)
-    P^s_k = P_k + G (P^s_{k+1} - P^-) G^T   (lower half computed, mirrored)
+    P^s_k = P_k + G (P^s_{k+1} - P^-) G^T   (lower half computed, mirrored; not PSD: SYMKF_ERR_NOT_PD)
 
 The prediction is recomputed from the filtered row instead of being stored by the forward run: the
 forward loop stays as it is, the history a smoother needs is the run's x and P (n + n^2 numbers per
@@ -47,8 +47,9 @@ def smoothed_symbols(symbols: Symbols, P: ca.SX, P_unit: str) -> tuple[dict, dic
 
 def backward_step(x: ca.SX, P: ca.SX, smoothed: dict, x_pred: ca.SX, P_pred: ca.SX, D: ca.SX, ok: ca.SX,
                   chart=None, domain=1):
-    """x^s_k, P^s_k and the status (DOMAIN unless ``domain``; NOT_PD unless ``ok`` and P^- has a
-    Cholesky factor). With a manifold ``chart`` the correction is made in error coordinates:
+    """x^s_k, P^s_k and the status (DOMAIN unless ``domain``; NOT_PD unless ``ok``, P^- has a
+    Cholesky factor and P^s_k is positive semi-definite: in a float build the sum
+    P_k + G (P^s_{k+1} - P^-) G^T can cancel to a negative variance, which is reported, not kept). With a manifold ``chart`` the correction is made in error coordinates:
     x^s_k = x_k (+) G (x^s_{k+1} (-) x^-) (the covariance is not transported between charts,
     the first-order error-state smoother, as the MEKF's reset)."""
     L, ok_pred = linalg.cholesky(P_pred)
@@ -59,7 +60,8 @@ def backward_step(x: ca.SX, P: ca.SX, smoothed: dict, x_pred: ca.SX, P_pred: ca.
         x_out = chart.retract(x, G @ chart.local(smoothed["xs"], x_pred))
     change = linalg.sandwich(G, smoothed["Ps"] - P_pred)
     P_out = linalg.symmetric(P.shape[0], lambda i, j: linalg.symmetric_part(P, i, j) + change[i, j])
-    status = linalg.select(domain, linalg.select(ok * ok_pred, 0, STATUS_NOT_PD), STATUS_DOMAIN)
+    ok_out = linalg.psd_flag(P_out)          # a smoothed P that lost its PSD to round-off is refused, never kept
+    status = linalg.select(domain, linalg.select(ok * ok_pred * ok_out, 0, STATUS_NOT_PD), STATUS_DOMAIN)
     return [("xs", x_out), ("Ps", P_out), ("status", status)]
 
 

@@ -12,7 +12,8 @@ class NumpyCDEKF:
 
     Same equations as ``symkf.codegen.families.cd_ekf`` (Table 1): RK4 of x and the full P, then
     masked updates with P = (I - K H) P symmetrised; the model functions come from the same
-    symbolic source via :func:`reference_functions`.
+    symbolic source via :func:`reference_functions`. :meth:`transition` adds the smoother's
+    transition matrix Phi to the same RK4 (``symkf.runtime.reference.rts.cd_ekf_rts``).
     """
 
     def __init__(self, model, x0, P0, Q, R: dict, substeps: int = 1):
@@ -23,24 +24,35 @@ class NumpyCDEKF:
         self.substeps, self.t, self.u = substeps, 0.0, np.zeros(model.u.shape[0])
         self.p = np.zeros(model.p.shape[0])
 
-    def _derivative(self, t, x, P):
+    def _derivative(self, t, x, P, *Phi):
         a = np.asarray(self.functions["a"](t, x, self.u, self.p)).ravel()
         A = np.asarray(self.functions["A"](t, x, self.u, self.p))
-        return a, A @ P + P @ A.T + self.Q
+        return (a, A @ P + P @ A.T + self.Q) + tuple(A @ M for M in Phi)
+
+    def _integrate(self, t: float, dt: float, x, P, transition: bool = False):
+        """RK4 over [t, t + dt] of x, P (and with ``transition`` the transition matrix,
+        Phi' = A(x) Phi, Phi(t) = I: the filter itself does not need it)."""
+        y, h = (x, P) + ((np.eye(x.size),) if transition else ()), dt / self.substeps
+        for i in range(self.substeps):
+            ti = t + i * h
+            k1 = self._derivative(ti, *y)
+            k2 = self._derivative(ti + h / 2, *(a + h / 2 * b for a, b in zip(y, k1)))
+            k3 = self._derivative(ti + h / 2, *(a + h / 2 * b for a, b in zip(y, k2)))
+            k4 = self._derivative(ti + h, *(a + h * b for a, b in zip(y, k3)))
+            y = tuple(a + h / 6 * (b1 + 2 * b2 + 2 * b3 + b4) for a, b1, b2, b3, b4 in zip(y, k1, k2, k3, k4))
+        return (y[0], 0.5 * (y[1] + y[1].T)) + y[2:]
 
     def predict(self, t: float, dt: float, u=None) -> None:
         if u is not None:
             self.u = np.array(u, float)
-        x, P, h = self.x, self.P, dt / self.substeps
-        for i in range(self.substeps):
-            ti = t + i * h
-            k1 = self._derivative(ti, x, P)
-            k2 = self._derivative(ti + h / 2, x + h / 2 * k1[0], P + h / 2 * k1[1])
-            k3 = self._derivative(ti + h / 2, x + h / 2 * k2[0], P + h / 2 * k2[1])
-            k4 = self._derivative(ti + h, x + h * k3[0], P + h * k3[1])
-            x = x + h / 6 * (k1[0] + 2 * k2[0] + 2 * k3[0] + k4[0])
-            P = P + h / 6 * (k1[1] + 2 * k2[1] + 2 * k3[1] + k4[1])
-        self.x, self.P, self.t = x, 0.5 * (P + P.T), t + dt
+        self.x, self.P = self._integrate(t, dt, self.x, self.P)
+        self.t = t + dt
+
+    def transition(self, t: float, dt: float, x, P, u=None):
+        """x^-, P^- and Phi = d x^- / d x of the time update from (x, P) at t (the smoother's step)."""
+        if u is not None:
+            self.u = np.array(u, float)
+        return self._integrate(t, dt, np.asarray(x, float), np.asarray(P, float), transition=True)
 
     def update(self, z, measurement: str, mask=None, **_ignored) -> None:
         z = np.asarray(z, float)

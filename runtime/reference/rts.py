@@ -9,6 +9,9 @@
 - :func:`mekf_rts`: the error-state RTS smoother of the multiplicative EKF over a run's filtered
   rows, with the NumPy reference's chart and F (runtime/reference/manifold.py):
   x^s_k = x_k ⊞ G (x^s_{k+1} ⊟ x^-), G = P_k Fᵀ (P^-)^-1.
+- :func:`cd_ekf_rts`: the continuous-discrete EKF's RTS smoother over a run's filtered rows, with
+  the NumPy reference's time update (runtime/reference/cd_ekf.py): x^-, P^- and the transition
+  matrix Phi integrated together by RK4, G = P_k Phiᵀ (P^-)^-1.
 
 Both take the run's convention: step k predicts from t[k] over dt[k], then updates; a step whose
 update is skipped (``updated[k]`` False: masked, gated) is a prediction.
@@ -84,5 +87,17 @@ def mekf_rts(ref, x, P, t, dt, u=None) -> tuple[np.ndarray, np.ndarray]:
         P_pred = _sym(F @ P[k] @ F.T + ref.process_noise(t[k + 1], dt[k + 1]))
         G = cho_solve(cho_factor(P_pred, lower=True), F @ P[k]).T
         xs[k] = ref.retract(x[k], G @ ref.local(xs[k + 1], x_pred))
+        Ps[k] = _sym(P[k] + G @ (Ps[k + 1] - P_pred) @ G.T)
+    return xs, Ps
+
+
+def cd_ekf_rts(ref, x, P, t, dt, u=None) -> tuple[np.ndarray, np.ndarray]:
+    """The continuous-discrete RTS smoother over filtered (x, P) with the reference ``ref`` (a
+    :class:`NumpyCDEKF`): step k + 1 integrates row k to x^-, P^- and Phi (the same RK4)."""
+    xs, Ps = x.copy(), P.copy()
+    for k in range(len(x) - 2, -1, -1):
+        x_pred, P_pred, Phi = ref.transition(t[k + 1], dt[k + 1], x[k], P[k], None if u is None else u[k + 1])
+        G = cho_solve(cho_factor(P_pred, lower=True), Phi @ P[k]).T          # P Phi^T (P^-)^-1
+        xs[k] = x[k] + G @ (xs[k + 1] - x_pred)
         Ps[k] = _sym(P[k] + G @ (Ps[k + 1] - P_pred) @ G.T)
     return xs, Ps

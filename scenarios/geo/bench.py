@@ -13,6 +13,10 @@ Measures, each as the median of ``--repeats``:
 
 Targets (2-core machine): full build <= 10 s, no-op <= 1 s, a step <= 10 us.
 ``--opt-levels`` also compiles the generated C at -O1/-O2/-O3 and reports compile times.
+``--instructions`` counts, with callgrind (deterministic under load), the instructions per step
+of the time update (``cd_ekf_predict``), of the forward run (``cd_ekf_step_gyro_run``: predict
+and gyro update) and of the RTS smoother's backward pass (``cd_ekf_smooth_run``), each as the
+difference of 600 and 100 steps per 500 (the driver is ``c_loop_driver.c`` beside this file).
 """
 from __future__ import annotations
 
@@ -23,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from symkf.scenarios import timing
+from symkf.scenarios import callgrind, timing
 from symkf.scenarios.report import emit
 
 MODEL = "geo_satellite"
@@ -34,6 +38,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--json", action="store_true", help="print the results as JSON")
     parser.add_argument("--repeats", type=int, default=1, help="builds per measurement (median)")
     parser.add_argument("--opt-levels", action="store_true", help="also time compiling at -O1/-O2/-O3")
+    parser.add_argument("--instructions", action="store_true",
+                        help="also count instructions per forward and backward (smoother) step with valgrind")
 
 
 # ---------------------------------------------------------------------- build loop
@@ -94,10 +100,56 @@ def step_cost() -> dict:
     return out
 
 
+# ---------------------------------------------------------------------- instructions
+#: Steps of the two callgrind runs whose difference is counted (a gyro update at every step).
+FEW_STEPS, MANY_STEPS = 100, 600
+
+
+def instruction_counts() -> dict:
+    """Instructions per step of each part (see the module docstring); {} without valgrind. The
+    backward figure is the backward run's count minus the forward run's it starts with."""
+    import shutil
+    from symkf.codegen.lifecycle import build_model
+    if not shutil.which("valgrind"):
+        return {}
+    directory = build_model(MODEL).directory
+    with tempfile.TemporaryDirectory() as tmp:
+        exe = callgrind.compile_driver(directory, callgrind.driver_source(__package__, "c_loop_driver.c"),
+                                       Path(tmp) / "c_loop")
+        stdin = _driver_input(MANY_STEPS)
+
+        def per_step(part: str) -> float:
+            totals = []
+            for steps in (FEW_STEPS, MANY_STEPS):
+                total, stdout = callgrind.run([str(exe), str(steps), part], stdin, Path(tmp) / f"cg.{part}.{steps}")
+                if int(stdout.split()[0]):
+                    raise RuntimeError(f"geo c_loop_driver: {part} returned code {stdout.split()[0]}")
+                totals.append(total)
+            return (totals[1] - totals[0]) / (MANY_STEPS - FEW_STEPS)
+        counts = {part: per_step(part) for part in ("predict", "run", "backward")}
+    counts["backward"] -= counts["run"]
+    return {"predict": counts["predict"], "forward_step": counts["run"], "backward_step": counts["backward"],
+            "backward_over_forward": counts["backward"] / counts["run"]}
+
+
+def _driver_input(n_steps: int) -> str:
+    """The driver's stdin: Table 6 initial errors (half), the filter tuning, gyro noise and torques."""
+    from symkf.models import geo_satellite as geo
+    tune = geo.filter_tuning()
+    rng = np.random.default_rng(3)
+    head = np.concatenate([geo.initial_errors(geo.TABLE6) * 0.5, tune["P0"].ravel("F"), tune["Q"].ravel("F"),
+                           tune["R"]["gyro"].ravel("F")])
+    rows = [np.concatenate([[0.125], rng.normal(0.0, 0.05, 4), rng.normal(0.0, geo.SIGMA["gyro"], 4)])
+            for _ in range(n_steps)]
+    return "\n".join([" ".join(f"{v:.17g}" for v in head), str(n_steps)] + [" ".join(f"{v:.17g}" for v in r) for r in rows])
+
+
 def run(args) -> int:
     results = {"model": MODEL, "targets": TARGETS, "build": build_loop(max(args.repeats, 1)), "step": step_cost()}
     if args.opt_levels:
         results["compile_seconds_by_level"] = compile_levels()
+    if getattr(args, "instructions", False):
+        results["instructions_per_step"] = instruction_counts()
     predict = results["step"]["predict"]["bare_call_us"]
     results["meets_targets"] = {
         "full_build": results["build"]["full_build_s"] <= TARGETS["full_build_s"],
@@ -116,4 +168,11 @@ def _print(results: dict) -> None:
         print(f"{name:28s} {row['bare_call_us']:13.2f} {row['filter_method_us']:10.2f} {row['numpy_reference_us']:10.1f}")
     for level, seconds in results.get("compile_seconds_by_level", {}).items():
         print(f"compile {level}: {seconds:.2f} s")
+    counts = results.get("instructions_per_step")
+    if counts:
+        print(f"instructions per step (callgrind): predict {counts['predict']:.0f}, forward step (predict + gyro "
+              f"update) {counts['forward_step']:.0f}, smoother backward step {counts['backward_step']:.0f} "
+              f"({counts['backward_over_forward']:.2f} x forward)")
+    elif "instructions_per_step" in results:
+        print("instructions per step: valgrind not found")
     print("meets targets:", results["meets_targets"])

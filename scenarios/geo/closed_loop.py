@@ -14,6 +14,13 @@ One base tick of 1/8 s (the fastest sensor). At tick k (time t_k):
    until the next control tick;
 4. the truth is integrated to t_{k+1} with the model's own RK4 (``truth_substeps`` per tick).
 
+After the loop (``smooth``, on by default) the estimator's record is smoothed: the CD-EKF's RTS
+smoother (the compiled ``cd_ekf_smooth_run``, or for "numpy-ekf" the NumPy reference
+``cd_ekf_rts``) over each tick's filtered x, P and the torques that were applied. It is an
+after-the-fact estimate only: the controller saw the filtered estimate at each tick, and the
+smoother runs once the loop has ended, so it cannot feed the controller (a test checks that the
+loop is bit-identical with and without it).
+
 A failed gyro is an availability mask (its output is NaN, its mask 0): the same compiled update
 runs in every case. ``symkf.runtime.reference.NumpyCDEKF`` is the plain NumPy reference of the
 compiled filter.
@@ -28,8 +35,10 @@ import numpy as np
 from symkf.codegen.families.cd_ekf import reference_functions
 from symkf.models import geo_satellite as geo
 from symkf.models import get_model
-from symkf.runtime import SymkfError
+from symkf.runtime import SymkfError, smooth
 from symkf.runtime.reference import NumpyCDEKF
+from symkf.runtime.reference.rts import cd_ekf_rts
+from symkf.runtime.runs import RunResult
 
 BASE_RATE_HZ = geo.GYRO_RATE_HZ
 TICK = 1.0 / BASE_RATE_HZ
@@ -92,6 +101,7 @@ class LoopSettings:
         initial: "table6" (section 4) or "table4" (section 3) initial errors of the truth; the
             filter starts from x = 0, so these are also the filter's initial errors.
         truth_substeps: RK4 steps of the truth per 1/8 s tick.
+        smooth: also smooth the estimator's record once the loop has ended (EKF estimators).
     """
 
     duration: float = 1000.0
@@ -103,6 +113,7 @@ class LoopSettings:
     seed: int = 0
     truth_substeps: int = 4
     units: str = "paper"
+    smooth: bool = True
 
 
 @dataclass
@@ -117,15 +128,21 @@ class LoopResult:
     wheel_torque: np.ndarray            # (N, 4) commanded, held over the tick
     body_torque: np.ndarray             # (N, 3) eq (5)
     failures: list = field(default_factory=list)
+    smoothed: np.ndarray | None = None          # (N, 17) the RTS estimate given the whole record
+    smoothed_sigma: np.ndarray | None = None    # (N, 17) sqrt(diag P_smooth)
+    smooth_status: np.ndarray | None = None     # (N,) 0 or the SYMKF_ERR_* code of a refused backward step
 
     @property
     def attitude_deg(self) -> np.ndarray:
         """True attitude angles (deg): the attitude error, the commanded attitude being 0."""
         return np.rad2deg(self.truth[:, geo.SLICES["angle"]])
 
-    def estimation_error(self, block: str) -> np.ndarray:
+    def estimation_error(self, block: str, smoothed: bool = False) -> np.ndarray:
+        """Estimate minus truth of one state block, filtered (as the controller saw it) or smoothed."""
         s = geo.SLICES[block]
-        return self.estimate[:, s] - self.truth[:, s]
+        if smoothed and self.smoothed is None:
+            raise ValueError("estimation_error: this run has no smoothed estimate (no EKF, or smooth=False)")
+        return (self.smoothed if smoothed else self.estimate)[:, s] - self.truth[:, s]
 
 
 class ClosedLoop:
@@ -208,14 +225,17 @@ class ClosedLoop:
         n_ticks = int(round(s.duration / TICK)) + 1
         x = geo.initial_errors(INITIAL_TABLES[s.initial], s.units, bias=s.bias)
         hist = {k: np.full((n_ticks, w), np.nan) for k, w in
-                (("truth", 17), ("estimate", 17), ("sigma", 17), ("wheel", 4), ("body", 3))}
+                (("truth", 17), ("estimate", 17), ("sigma", 17), ("wheel", 4), ("body", 3), ("applied", 4))}
+        covariances = np.full((n_ticks, 17, 17), np.nan) if self.filter is not None else None
         u, body = np.zeros(4), np.zeros(3)
         sensed = {"angle": np.zeros(3), "integral": np.zeros(3), "rate": np.zeros(3), "momentum": np.zeros(4)}
         for k in range(n_ticks):
             t = k * TICK
+            hist["applied"][k] = u                          # the torques held over [t_{k-1}, t_k]
             if self.filter is not None:
                 estimate = self._filter_tick(k, t, x, u)
-                hist["sigma"][k] = np.sqrt(np.clip(np.diag(self.filter.P), 0, None))
+                covariances[k] = self.filter.P
+                hist["sigma"][k] = np.sqrt(np.clip(np.diag(covariances[k]), 0, None))
             else:
                 estimate = self._sensor_tick(k, x, sensed)
             if k % CONTROL_PERIOD_TICKS == 0:
@@ -230,8 +250,28 @@ class ClosedLoop:
                 break                                       # diverged beyond the model's validity
             x = self.propagate_truth(t, x, u)
         n = hist["truth"].shape[0]
-        return LoopResult(s, np.arange(n) * TICK, hist["truth"], hist["estimate"], hist["sigma"],
-                          hist["wheel"], hist["body"])
+        result = LoopResult(s, np.arange(n) * TICK, hist["truth"], hist["estimate"], hist["sigma"],
+                            hist["wheel"], hist["body"])
+        if s.smooth and self.filter is not None:
+            self._smooth(result, covariances[:n], hist["applied"])
+        return result
+
+    def _smooth(self, result: LoopResult, P: np.ndarray, applied: np.ndarray) -> None:
+        """The RTS smoothing of the loop's record, after the loop (see the module docstring):
+        step k predicted from t_{k-1} over one tick with the torques ``applied[k]``; tick 0 only
+        updated. A refused backward step keeps its filtered row and its code (smooth_status)."""
+        n = result.t.size
+        t, dt = np.maximum(result.t - TICK, 0.0), np.where(np.arange(n) > 0, TICK, 0.0)
+        if self.settings.estimator == "numpy-ekf":
+            xs, Ps = cd_ekf_rts(self.filter, result.estimate, P, t, dt, applied)
+            codes = np.zeros(n, dtype=int)
+        else:
+            record = RunResult(result.estimate, P, np.zeros(n, dtype=np.intc),
+                               {"t": t, "dt": dt, "u": applied, "p": np.zeros(0), "Q": self.tuning["Q"]})
+            smoothed = smooth(self.filter, record, errors="keep")
+            xs, Ps, codes = smoothed.x_smooth, smoothed.P_smooth, smoothed.smooth_status
+        result.smoothed, result.smooth_status = xs, codes
+        result.smoothed_sigma = np.sqrt(np.clip(np.einsum("kii->ki", Ps), 0, None))
 
     def _filter_tick(self, k: int, t: float, x: np.ndarray, u: np.ndarray) -> np.ndarray:
         ekf = self.filter

@@ -13,7 +13,11 @@ Initial errors: Table 6 (Table 4 for the section-3 run); the truth starts at the
 Writes ``case<N>.png`` figures and ``summary.json``: per run the final and peak attitude error
 (deg), converged / bounded / diverged, the estimation errors (EKF runs), and per case each claim
 of the paper in plain words (``says``, ``compared`` with the numbers, ``holds``: claim_text.py)
-with its evidence; ``series.nc``: every loop's histories (scenarios/geo/series.py). All dynamics come from ``models/geo_satellite.py``
+with its evidence; ``series.nc``: every loop's histories (scenarios/geo/series.py). EKF runs also
+report the CD-EKF RTS smoother beside the filter (``smoother``: whole-run RMS estimation error per
+block, filtered and smoothed, and the claim ``rts_rms_at_most_filter_rms`` of cases 3 and 4); the
+smoother runs after each loop and never feeds its controller (``symkf.scenarios.geo.closed_loop``).
+All dynamics come from ``models/geo_satellite.py``
 through ``symkf.scenarios.geo.closed_loop``; nothing here restates an equation.
 """
 from __future__ import annotations
@@ -41,6 +45,8 @@ CONVERGED_DEG = 0.01
 DIVERGED_DEG = 1.0
 #: "Same result" claims: the largest attitude difference, as a fraction of the reference peak.
 SAME_FRACTION = 0.25
+#: Estimated blocks and their report units (rad -> deg for angles and rates).
+BLOCK_UNITS = {"angle": np.rad2deg(1.0), "rate": np.rad2deg(1.0), "momentum": 1.0, "bias": np.rad2deg(1.0)}
 
 
 def case_runs(case: int, duration: float = DEFAULT_DURATION) -> dict[str, LoopSettings]:
@@ -101,9 +107,34 @@ def run_metrics(result: LoopResult) -> dict:
         # a failed gyro's bias is never measured: its estimate stays at the prior (reported, not scored)
         metrics["bias_estimation_error_deg_s"] = float(bias_error.max()) if working else None
         metrics["bias_estimation_error_note"] = "max over working gyros only"
+        if result.smoothed is not None:
+            metrics["smoother"] = smoother_metrics(result)
     else:
         metrics["gyro_geometry_rank"] = geometry_rank(result.settings.failed_gyros)
     return metrics
+
+
+def smoother_metrics(result: LoopResult) -> dict:
+    """Whole-run RMS estimation error of each block (largest component; deg, deg/s, in-lbf-s,
+    deg/s), filtered (what the controller used) and smoothed (RTS, after the loop)."""
+    def rms(smoothed: bool) -> dict:
+        return {block: float(np.sqrt(np.mean(result.estimation_error(block, smoothed) ** 2, axis=0)).max() * unit)
+                for block, unit in BLOCK_UNITS.items()}
+    filtered, smoothed = rms(False), rms(True)
+    return {"rms_filtered": filtered, "rms_smoothed": smoothed,
+            "rts_le_filter": {block: smoothed[block] <= filtered[block] for block in BLOCK_UNITS},
+            "refused_backward_steps": int(np.count_nonzero(result.smooth_status))}
+
+
+def smoother_claim(metrics: dict) -> dict:
+    """RTS <= filter in every block of every EKF run (the exceptions named, with their figures)."""
+    exceptions = {f"{run}.{block}": {"filtered": m["smoother"]["rms_filtered"][block],
+                                     "smoothed": m["smoother"]["rms_smoothed"][block]}
+                  for run, m in metrics.items() if "smoother" in m
+                  for block, ok in m["smoother"]["rts_le_filter"].items() if not ok}
+    refused = {run: m["smoother"]["refused_backward_steps"] for run, m in metrics.items()
+               if m.get("smoother", {}).get("refused_backward_steps")}
+    return {"value": not exceptions and not refused, "evidence": {"exceptions": exceptions, "refused": refused}}
 
 
 def largest_difference(a: LoopResult, b: LoopResult) -> dict:
@@ -179,6 +210,7 @@ def claims_case3(results: dict, metrics: dict, reference: dict | None) -> dict:
             "evidence": largest_difference(results["bias_on_noise_on"], results["bias_on_noise_off"])},
     }
     claims["integral_as_without_bias_once_bias_estimated"] = _integral_claim(results)
+    claims["rts_rms_at_most_filter_rms"] = smoother_claim(metrics)
     if reference is not None:
         same = largest_difference(results["bias_off_noise_off"], reference["bias_off_fail_none"])
         claims["ekf_in_the_loop_matches_no_ekf_loop"] = {"value": same["fraction"] < SAME_FRACTION, "evidence": same,
@@ -207,6 +239,7 @@ def claims_case4(results: dict, metrics: dict, reference: dict | None) -> dict:
             "evidence": {"status": metrics[k]["status_evidence"],
                          "final_estimation_error": metrics[k]["final_estimation_error"]}}
         for k in results}
+    claims["rts_rms_at_most_filter_rms"] = smoother_claim(metrics)
     if reference is not None:
         same = largest_difference(results["fail_ABCD"], reference["bias_on_noise_on"])
         claims["all_failed_matches_no_failure"] = {"value": same["fraction"] < SAME_FRACTION, "evidence": same}
@@ -289,6 +322,10 @@ def run(args) -> int:
         for name, m in metrics[case].items():
             print(f"  {name:28s} {m['status']:9s} peak {max(m['peak_attitude_error_deg']):9.4f} deg"
                   f"  final {max(m['final_attitude_error_deg']):9.5f} deg")
+            if "smoother" in m:
+                f, r = m["smoother"]["rms_filtered"], m["smoother"]["rms_smoothed"]
+                print("    RMS error CD-EKF / CD-EKF+RTS: " + ", ".join(
+                    f"{block} {f[block]:.3g} / {r[block]:.3g}" for block in BLOCK_UNITS))
     mark = time.perf_counter()
     saved = R.save(series.make_series({c: previous[c] for c in cases}, metrics, {"duration_s": args.duration}), out)
     (out / "summary.json").write_text(json.dumps(summary, indent=1, default=_json_default))

@@ -118,3 +118,23 @@ def test_closed_loop_compiled_equals_numpy_reference(compiled):
     np.testing.assert_allclose(a.sigma, b.sigma, rtol=1e-7, atol=1e-12)
     np.testing.assert_allclose(a.truth, b.truth, rtol=1e-9, atol=1e-13)
     assert np.abs(a.estimate[-1] - a.truth[-1])[3:9].max() < 1e-4      # and it tracks the truth
+
+
+def test_smoother_is_after_the_fact_and_never_feeds_the_controller(compiled):
+    """The closed loop with and without the CD-EKF RTS smoothing is bit-identical (the smoother
+    runs once the loop has ended); the smoothing beats the filter's whole-run error, and the
+    compiled backward pass equals the NumPy reference's over the same loop."""
+    with_rts = simulate(LoopSettings(20.0, "ekf"), compiled)
+    without = simulate(LoopSettings(20.0, "ekf", smooth=False), compiled)
+    for name in ("truth", "estimate", "sigma", "wheel_torque", "body_torque"):
+        np.testing.assert_array_equal(getattr(with_rts, name), getattr(without, name))
+    assert without.smoothed is None and not with_rts.smooth_status.any()
+    with pytest.raises(ValueError, match="no smoothed estimate"):
+        without.estimation_error("rate", smoothed=True)
+    for block in ("angle", "rate", "momentum", "bias"):
+        filtered, smoothed = (np.sqrt(np.mean(with_rts.estimation_error(block, s) ** 2)) for s in (False, True))
+        assert smoothed < 0.5 * filtered, block
+    reference = simulate(LoopSettings(20.0, "numpy-ekf"), compiled)
+    scale = np.sqrt(np.diag(geo.filter_tuning()["P0"]))
+    np.testing.assert_allclose(reference.estimate / scale, with_rts.estimate / scale, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(reference.smoothed / scale, with_rts.smoothed / scale, rtol=0, atol=1e-12)

@@ -140,11 +140,14 @@ def test_a_failed_backward_step_raises_or_is_kept(radar):
     f = radar.ekf(X0, P0, Q)
     run = f.run_steps(np.full(N, DT), z, "range", u=u)
     run.P[40] = -np.eye(3)                    # not a covariance: P^- of step 41 has no Cholesky factor
-    with pytest.raises(SymkfError, match=r"SYMKF_ERR_NOT_PD.*backward step\(s\) \[40\]"):
+    # step 40 restarts from its filtered row, -I: step 39's smoothed P is then not PSD, refused too
+    with pytest.raises(SymkfError, match=r"SYMKF_ERR_NOT_PD.*backward step\(s\) \[40, 39\]"):
         smooth(f, run)
     kept = smooth(f, run, errors="keep")
-    assert kept.smooth_status[40] == STATUS_NOT_PD and np.count_nonzero(kept.smooth_status) == 1
+    assert kept.smooth_status[40] == kept.smooth_status[39] == STATUS_NOT_PD
+    assert np.count_nonzero(kept.smooth_status) == 2
     np.testing.assert_array_equal(kept.x_smooth[40], run.x[40])
+    np.testing.assert_array_equal(kept.P_smooth[39], run.P[39])
 
 
 def test_smooth_refuses_what_it_cannot_smooth(radar):

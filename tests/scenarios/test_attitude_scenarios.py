@@ -61,6 +61,11 @@ def test_compare_writes_figures_and_summary(tmp_path, monkeypatch, capsys):
     assert summary["paper_claims"]["both_converge"]["compared"] == "runs converged: MEKF 2/2, UKF 2/2"
     rms = np.sqrt(np.mean(series["attitude_error_rms"][:, 600:] ** 2, axis=1))     # the last half, over runs
     assert rms.tolist() == pytest.approx([summary["filters"][f]["attitude_rms_deg"] for f in ("mekf", "ukf")], rel=1e-12)
+    rts, mekf = summary["filters"]["mekf_rts"], summary["filters"]["mekf"]
+    assert rts["failed_steps_total"] == 0                                # no refused backward step
+    assert rts["attitude_rms_deg"] < mekf["attitude_rms_deg"]            # the whole record helps
+    assert rts["transient_rms_deg_first_300s"] < 0.5 * mekf["transient_rms_deg_first_300s"]
+    assert all(summary["rts_le_filter"].values())
 
 
 def test_scenario_two_reports_the_literal_bias(tmp_path):

@@ -48,8 +48,12 @@ def test_case2_integral_compensates_bias_and_gyro_B_failure(cases):
 
 def test_case3_ekf_converges_and_estimates_the_biases(cases):
     for claim in ("ekf_converges_in_the_2hz_loop", "gyro_bias_estimated", "noise_barely_changes_attitude",
-                  "ekf_in_the_loop_matches_no_ekf_loop", "integral_as_without_bias_once_bias_estimated"):
+                  "ekf_in_the_loop_matches_no_ekf_loop", "integral_as_without_bias_once_bias_estimated",
+                  "rts_rms_at_most_filter_rms"):
         assert verdict(cases, 3, claim), claim
+    rts = cases[3][1]["runs"]["bias_on_noise_on"]["smoother"]
+    assert rts["refused_backward_steps"] == 0
+    assert rts["rms_smoothed"]["rate"] < 0.1 * rts["rms_filtered"]["rate"]
     bias_error = cases[3][1]["runs"]["bias_on_noise_off"]["bias_estimation_error_deg_s"]
     assert bias_error < 1e-4                                       # deg/s, true biases 0.01-0.02 deg/s
 
@@ -58,6 +62,7 @@ def test_case4_ekf_controls_with_gyros_A_C_and_all_failed(cases):
     assert verdict(cases, 4, "controlled_with_gyros_AC_failed")
     assert verdict(cases, 4, "controlled_with_gyros_ABCD_failed")
     assert verdict(cases, 4, "all_failed_matches_no_failure")
+    assert verdict(cases, 4, "rts_rms_at_most_filter_rms")
 
 
 def test_compare_command_writes_summary_and_figure(tmp_path, monkeypatch):
@@ -88,3 +93,16 @@ def test_full_length_cases_hold_every_claim_but_the_papers_converging_pairs(case
     for claim, verdict_ in entry["claims"].items():
         expected = claim != "some_failed_pairs_converge"      # our finding: every pair diverges
         assert verdict_["value"] == expected, claim
+
+
+def test_bench_counts_instructions_of_the_smoother_beside_the_filter():
+    """Callgrind's counts per step (deterministic): the backward step integrates x, P and Phi
+    (17 x 17) and solves for the gain, so it costs more than the time update it repeats."""
+    import shutil
+    from symkf.scenarios.geo import bench
+    if not shutil.which("valgrind"):
+        pytest.skip("valgrind not installed: apt-get install valgrind")
+    counts = bench.instruction_counts()
+    assert 0 < counts["predict"] < counts["forward_step"] < counts["backward_step"]
+    assert counts["backward_over_forward"] == pytest.approx(counts["backward_step"] / counts["forward_step"])
+    assert counts["backward_step"] < 10 * counts["forward_step"]
