@@ -107,7 +107,8 @@ def run(args) -> int:
         print(f"  ukf_le_ekf_every_state: {summary['claims']['ukf_le_ekf_every_state']}")
         print(f"  smoothed RMS above the filter's in: {summary['claims']['rts_above_filter_cells'] or 'no cell'}")
         print(f"wrote {out}/ in {wall + written:.1f} s: campaign {wall:.1f} s ({campaign.stats.executor}, "
-              f"{campaign.stats.workers} workers), tables and figures {written:.1f} s")
+              f"{campaign.stats.workers} workers; {campaign.stats.cpu_s:.1f} CPU-s in this process and the worker "
+              f"processes it started), tables and figures {written:.1f} s")
     return 0
 
 
@@ -214,7 +215,9 @@ def make_summary(results: list[CaseResult], args, wall: float, campaign: Campaig
             }
         cases[result.case.label] = entry
     rows = table_rows(results)
+    stats = campaign.stats
     return {"runs": args.runs, "seed": args.seed, "duration_s": args.duration, "wall_s": wall,
+            "executor": stats.executor, "workers": stats.workers, "campaign_cpu_s": stats.cpu_s,
             "filters": campaign.preset, "codegen": campaign.codegen, "units": UNITS,
             "tuning": {k: np.asarray(v).tolist() for k, v in campaign.tuning.items()},
             "mean_abs_log10_vs_paper": mean_abs_log10_vs_paper(rows), "table3_cells": 2 * len(rows),
