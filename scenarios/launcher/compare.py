@@ -205,6 +205,7 @@ def make_summary(results: list[CaseResult], args, wall: float, campaign: Campaig
                 "rms_eq11": dict(zip(STATE_NAMES, result.whole_flight(family).tolist())),
                 **consistency(result, family),
                 "wall_s": result.wall_s[family],
+                "cpu_s": result.cpu_s[family],
                 "steps": int(len(result.times) * result.errors[family].runs),
                 "us_per_step_in_run": 1e6 * result.wall_s[family] / (len(result.times) * result.errors[family].runs),
                 "failed_steps": result.failed_steps[family],

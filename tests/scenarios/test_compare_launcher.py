@@ -34,6 +34,10 @@ def test_outputs_are_written_and_well_formed(short_campaign):
     assert set(case) >= {"rms_eq11", "mean_nees", "fraction_inside_band", "wall_s", "steps"}
     assert case["steps"] == 3 * 1201
     assert isinstance(summary["claims"]["ukf_le_ekf_every_state"]["10Hz large"], bool)
+    # the campaign's CPU (this process's threads did every run: at least the runs' own CPU)
+    assert summary["executor"].startswith("threads") and summary["workers"] >= 1
+    run_cpu = sum(summary["cases"][label][f]["cpu_s"] for label in summary["cases"] for f in C.FILTERS)
+    assert summary["campaign_cpu_s"] >= run_cpu > 0
 
 
 def test_numbers_are_plausible(short_campaign):
