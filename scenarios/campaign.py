@@ -16,7 +16,8 @@ order, as results arrive:
 
 Executors: ``scheduler=None`` runs on local threads (the generated C releases the GIL; nothing
 else to install); ``"local:N"`` starts a ``distributed.LocalCluster`` of N single-threaded worker
-processes; ``"tcp://host:8786"`` (or any Dask address) uses a running cluster. Workers get the
+processes (:func:`local_cluster`: without the Dask defaults that cost a campaign CPU and change
+no result); ``"tcp://host:8786"`` (or any Dask address) uses a running cluster. Workers get the
 compiled model by its *content hash* (:func:`compiled_model`): each builds or loads it from its own
 cache on first use and refuses to run if its sources give a different hash; no library is pickled.
 """
