@@ -22,7 +22,6 @@ import math
 import numbers
 
 import numpy as np
-from scipy.stats import chi2
 
 #: Relative tolerance of the symmetry and semi-definiteness checks of a covariance.
 SYMMETRY_RTOL = 1e-9
@@ -175,6 +174,7 @@ def gate(probability, threshold, size: int) -> np.ndarray:
         probability = real("probability", probability)
         if not 0 < probability < 1:
             raise ValueError(f"probability: must be in (0, 1), got {probability}")
+        from scipy.stats import chi2       # here, not at import: scipy.stats takes ~0.5 CPU-s to import
         gate = chi2.ppf(probability, np.arange(1, gate.size + 1))
     elif threshold is not None:
         threshold = real("threshold", threshold)

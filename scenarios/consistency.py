@@ -18,7 +18,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.stats import chi2
 
 from symkf.scenarios.metrics import nees, state_error
 
@@ -42,6 +41,7 @@ class Average:
 def chi2_band(dof_total, count, probability: float = 0.95):
     """Two-sided band of the average of ``count`` independent chi-square values whose degrees of
     freedom add up to ``dof_total``: chi2.ppf(tails, dof_total) / count (arrays broadcast)."""
+    from scipy.stats import chi2       # here, not at import: a campaign's workers never need it
     tail = (1 - probability) / 2
     count = np.maximum(count, 1)
     return chi2.ppf(tail, dof_total) / count, chi2.ppf(1 - tail, dof_total) / count

@@ -1,16 +1,20 @@
 """Timing for every bench: functions called in interleaved rounds (so that they see the same machine
-load), wall time and this thread's CPU time of each call, medians, minimum and maximum, and the
-per-round ratio of two timings (the spread of a comparison on a shared machine).
+load), wall time and this thread's CPU time of each call, medians, minimum and maximum, the
+per-round ratio of two timings (the spread of a comparison on a shared machine) and the machine's
+load average to print beside them.
 
     samples = interleaved({"a": lambda i: step_a(), "b": lambda i: step_b()}, rounds=7, calls=1000)
     samples["a"].us           # median µs per call of a
     round_ratios(samples["a"], samples["b"])
 
 A function is called with the round's index (a batch of a long record starts where that index
-says); ``calls`` divides each round's time into a time per call.
+says); ``calls`` divides each round's time into a time per call (one count for all functions, or
+one per function). Paths too unlike to share a round size (a batch of 100 steps, a whole run)
+are timed each its own way within the same rounds and gathered by :func:`from_rounds`.
 """
 from __future__ import annotations
 
+import os
 import statistics
 import time
 from dataclasses import dataclass
@@ -45,25 +49,43 @@ class Samples:
         """Median µs per call."""
         return 1e6 * self.median
 
+    @property
+    def cpu_us(self) -> float:
+        """Median µs of this thread's CPU time per call."""
+        return 1e6 * self.cpu_median
+
 
 def timed(function: Callable[[], object]) -> tuple[object, float, float]:
     """(what ``function`` returns, its wall seconds, this thread's CPU seconds) of one call."""
-    start, cpu = time.perf_counter(), time.thread_time()
+    start, cpu = time.perf_counter_ns(), time.thread_time_ns()
     result = function()
-    return result, time.perf_counter() - start, time.thread_time() - cpu
+    return result, 1e-9 * (time.perf_counter_ns() - start), 1e-9 * (time.thread_time_ns() - cpu)
 
 
-def interleaved(functions: Mapping[str, Callable[[int], object]], rounds: int, calls: int = 1) -> dict[str, Samples]:
+def interleaved(functions: Mapping[str, Callable[[int], object]], rounds: int,
+                calls: int | Mapping[str, int] = 1) -> dict[str, Samples]:
     """Each function called once per round, in turn (round ``i`` calls every function with ``i``
-    before round ``i + 1`` starts); the samples are seconds per call (a round's time / ``calls``)."""
+    before round ``i + 1`` starts); the samples are seconds per call (a round's time / its
+    ``calls``: one count, or a count per function)."""
+    counts = calls if isinstance(calls, Mapping) else {name: calls for name in functions}
     wall = {name: [] for name in functions}
     cpu = {name: [] for name in functions}
     for i in range(max(1, rounds)):
         for name, function in functions.items():
             _, w, c = timed(lambda: function(i))
-            wall[name].append(w / calls)
-            cpu[name].append(c / calls)
+            wall[name].append(w / counts[name])
+            cpu[name].append(c / counts[name])
     return {name: Samples(tuple(wall[name]), tuple(cpu[name])) for name in functions}
+
+
+def from_rounds(rounds: Sequence[Mapping[str, tuple[float, float]]]) -> dict[str, Samples]:
+    """The samples of each name from rounds of (wall, CPU) seconds per call, one mapping a round."""
+    return {name: Samples(tuple(r[name][0] for r in rounds), tuple(r[name][1] for r in rounds)) for name in rounds[0]}
+
+
+def load_average() -> tuple[float, float, float]:
+    """The machine's load average over 1, 5 and 15 minutes (other jobs' demand for its cores)."""
+    return tuple(round(v, 2) for v in os.getloadavg())
 
 
 def repeated(function: Callable[[], object], rounds: int, calls: int = 1) -> Samples:

@@ -6,7 +6,9 @@ UKF ([x, w] and [x, v]) and the full augmented UKF ([x, w, v]).
 For each filter: the predict kernel and the step kernel (propagation + star-tracker update) as
 one bound C call each, the C run loop (µs per step, update every step), the Python filter
 object's step (propagation only / with update), and the NumPy reference (plain Python).
-Medians over ``--repeats``; the machine's load shows in the spread, so read ratios, not digits.
+Every path of a filter is timed in each of ``--repeats`` interleaved rounds (the same machine
+load for all); medians of wall time, and of the timing thread's CPU time (``cpu_us``). The load
+average is printed beside them: read ratios, not digits.
 """
 from __future__ import annotations
 
@@ -51,54 +53,55 @@ def _inputs(n_steps: int, with_star: bool, seed: int = 1):
     return truth.as_quat(), omega, z
 
 
-def _median_us(function, repeats: int, steps: int) -> float:
-    return timing.repeated(function, repeats, calls=steps).us
-
-
-def _kernel_us(filt: AttitudeFilter, call, repeats: int, calls: int) -> float:
-    """One bound kernel call (x, P restored after each, so every call does the same work)."""
+def _kernel_loop(filt: AttitudeFilter, call, calls: int):
+    """``calls`` bound kernel calls (x, P restored after each, so every call does the same work)."""
     x0, P0 = filt.x.copy(), filt.P.copy()
     x, P = filt.kernel_buffer("x"), filt.kernel_buffer("P")
 
-    def loop():
+    def loop(i):
         for _ in range(calls):
             call()
             x[:] = x0
             P[:] = P0
-    return _median_us(loop, repeats, calls)
+    return loop
 
 
 def bench(steps: int, repeats: int, reference_steps: int) -> dict:
+    """Every path of a filter in ``repeats`` interleaved rounds (each round times each path once,
+    in turn, so that all see the same machine load): medians of wall and thread CPU µs per step."""
     compiled = load("attitude", backend="compiled")
     P0 = np.diag([1e-6] * 3 + [1e-12] * 3)      # stays far from |δp| = 1 over a propagation-only record
-    results = {}
+    results = {"load_average": {"before": timing.load_average()}}
     for kind in KINDS:
-        row = {"sigma_points": SIGMA_POINTS[kind]}
         q0, omega, z = _inputs(steps, True)
         filt = AttitudeFilter(compiled, kind, q0, np.zeros(3), P0)
         x, P = filt.x.copy(), filt.P.copy()
         filt.step(omega[0], 0.25, z[0])                 # fills the input buffers of the bound kernels
         filt.x, filt.P = x, P
-        row["kernel_predict_us"] = _kernel_us(filt, filt.kernel_call("predict"), repeats, steps)
-        row["kernel_step_with_update_us"] = _kernel_us(filt, filt.kernel_call("step"), repeats, steps)
-        row["run_loop_step_with_update_us"] = _median_us(
-            lambda: AttitudeFilter(compiled, kind, q0, np.zeros(3), P0).run(omega, 0.25, z), repeats, steps)
+        paths = {"kernel_predict_us": _kernel_loop(filt, filt.kernel_call("predict"), steps),
+                 "kernel_step_with_update_us": _kernel_loop(filt, filt.kernel_call("step"), steps),
+                 "run_loop_step_with_update_us":
+                     lambda i: AttitudeFilter(compiled, kind, q0, np.zeros(3), P0).run(omega, 0.25, z)}
+        calls = dict.fromkeys(paths, steps)
         for label, with_star in (("propagate", False), ("propagate_update", True)):
             stars = [zi if with_star else None for zi in z]
 
-            def step_loop():
+            def step_loop(i, stars=stars):
                 f = AttitudeFilter(compiled, kind, q0, np.zeros(3), P0)
                 for w, zi in zip(omega, stars):
                     f.step(w, 0.25, zi)
 
-            def reference_loop():
+            def reference_loop(i, stars=stars):
                 f = ReferenceAttitudeFilter(kind, q0, np.zeros(3), P0)
                 for w, zi in zip(omega[:reference_steps], stars[:reference_steps]):
                     f.step(w, 0.25, zi)
 
-            row[f"python_filter_step_{label}_us"] = _median_us(step_loop, repeats, steps)
-            row[f"numpy_reference_{label}_us"] = _median_us(reference_loop, max(1, repeats // 3), reference_steps)
-        results[kind] = row
+            paths[f"python_filter_step_{label}_us"], calls[f"python_filter_step_{label}_us"] = step_loop, steps
+            paths[f"numpy_reference_{label}_us"], calls[f"numpy_reference_{label}_us"] = reference_loop, reference_steps
+        samples = timing.interleaved(paths, repeats, calls)
+        results[kind] = {"sigma_points": SIGMA_POINTS[kind], **{path: s.us for path, s in samples.items()},
+                         "cpu_us": {path: s.cpu_us for path, s in samples.items()}}
+    results["load_average"]["after"] = timing.load_average()
     results["ratios"] = {
         "augmented_over_separated_predict": results["aukf"]["kernel_predict_us"] / results["ukf"]["kernel_predict_us"],
         "augmented_over_separated_step": results["aukf"]["kernel_step_with_update_us"]
@@ -125,14 +128,18 @@ def run(args) -> int:
 
 
 def _print(results: dict) -> None:
-    print("paper 000 attitude filters, µs per step (median); kernel = one bound C call, run = C time loop")
+    load = results["load_average"]
+    print("paper 000 attitude filters, µs per step (median of interleaved rounds); kernel = one bound C call, "
+          f"run = C time loop; cpu = the thread's CPU time; load average {load['before'][0]:.2f} before, {load['after'][0]:.2f} after")
     print(f"{'filter':<6} {'sigma pts prop/upd':>18} {'predict':>9} {'step+upd':>9} {'run/step':>9} "
           f"{'py step':>9} {'py step+upd':>11} {'NumPy':>9} {'NumPy+upd':>10}")
     for kind in KINDS:
-        r, sp = results[kind], results[kind]["sigma_points"]
-        print(f"{kind:<6} {sp['propagation']:>9}/{sp['update']:<8} {r['kernel_predict_us']:>9.2f} "
-              f"{r['kernel_step_with_update_us']:>9.2f} {r['run_loop_step_with_update_us']:>9.2f} "
-              f"{r['python_filter_step_propagate_us']:>9.2f} {r['python_filter_step_propagate_update_us']:>11.2f} "
-              f"{r['numpy_reference_propagate_us']:>9.0f} {r['numpy_reference_propagate_update_us']:>10.0f}")
+        sp = results[kind]["sigma_points"]
+        for label, r in ((kind, results[kind]), ("  cpu", results[kind]["cpu_us"])):
+            points = f"{sp['propagation']:>9}/{sp['update']:<8}" if label == kind else f"{'':>18}"
+            print(f"{label:<6} {points} {r['kernel_predict_us']:>9.2f} "
+                  f"{r['kernel_step_with_update_us']:>9.2f} {r['run_loop_step_with_update_us']:>9.2f} "
+                  f"{r['python_filter_step_propagate_us']:>9.2f} {r['python_filter_step_propagate_update_us']:>11.2f} "
+                  f"{r['numpy_reference_propagate_us']:>9.0f} {r['numpy_reference_propagate_update_us']:>10.0f}")
     for name, value in results["ratios"].items():
         print(f"{name}: {value:.2f}")

@@ -9,7 +9,9 @@ Measures, each as the median of ``--repeats``:
   (scenarios/toolchain/build_bench.py; the edit is made in a user's copy of the model, never in this checkout);
 - per-call cost of the compiled kernels: ``cd_ekf_predict`` (1/8 s, RK4 of x and P) and each
   ``cd_ekf_update_<sensor>``, both as a bare bound call (ctypes) and through the Python filter
-  object, and the NumPy reference for comparison.
+  object, and the NumPy reference for comparison: the three timed in turn in each of 7 rounds
+  (the same machine load for all), medians of wall and of thread CPU time, the load average
+  printed beside them.
 
 Targets (2-core machine): full build <= 10 s, no-op <= 1 s, a step <= 10 us.
 ``--opt-levels`` also compiles the generated C at -O1/-O2/-O3 and reports compile times.
@@ -69,15 +71,26 @@ def compile_levels(levels=("-O1", "-O2", "-O3")) -> dict:
 
 
 # ---------------------------------------------------------------------- step cost
-def _median_us(call, n: int = 2000, blocks: int = 7) -> float:
-    """Median µs per call over ``blocks`` blocks of ``n`` calls."""
-    def block():
-        for _ in range(n):
-            call()
-    return timing.repeated(block, blocks, calls=n).us
+#: Rounds of the step timing (medians over rounds) and calls per round of the compiled paths
+#: and of the NumPy reference.
+ROUNDS, CALLS, REFERENCE_CALLS = 7, 2000, 50
+
+
+def _interleaved_us(paths: dict) -> tuple[dict[str, float], dict[str, float]]:
+    """Median wall and thread CPU µs per call of each path (``{name: (call, calls per round)}``),
+    the paths timed in turn in each of :data:`ROUNDS` rounds so that all see the same load."""
+    def block(call, n):
+        def calls(i):
+            for _ in range(n):
+                call()
+        return calls
+    samples = timing.interleaved({name: block(call, n) for name, (call, n) in paths.items()}, ROUNDS,
+                                 {name: n for name, (_, n) in paths.items()})
+    return {name: s.us for name, s in samples.items()}, {name: s.cpu_us for name, s in samples.items()}
 
 
 def step_cost() -> dict:
+    """Per kernel: the bare bound call, the filter's method and the NumPy reference, interleaved."""
     from symkf.models import geo_satellite as geo
     from symkf.models import get_model
     from symkf.runtime.reference import NumpyCDEKF
@@ -88,15 +101,18 @@ def step_cost() -> dict:
     ekf = compiled.filter("cd_ekf", x0, tune["P0"], tune["Q"], R=tune["R"], gate="none")
     reference = NumpyCDEKF(get_model(MODEL), x0, tune["P0"], tune["Q"], tune["R"])
     u = np.array([0.3, -0.1, 0.2, 0.05])
-    out = {"predict": {"bare_call_us": _median_us(ekf.kernel_call("predict")),
-                       "filter_method_us": _median_us(lambda: ekf.predict(None, 0.125, u=u)),
-                       "numpy_reference_us": _median_us(lambda: reference.predict(0.0, 0.125, u=u), n=50, blocks=3)}}
+    kernels = {"predict": (ekf.kernel_call("predict"), lambda: ekf.predict(None, 0.125, u=u),
+                           lambda: reference.predict(0.0, 0.125, u=u))}
     for name, meas in compiled.model["measurements"].items():
         z = np.zeros(len(meas["outputs"]))
-        out[f"update_{name}"] = {
-            "bare_call_us": _median_us(ekf.kernel_call("update", name)),
-            "filter_method_us": _median_us(lambda: ekf.update(z, measurement=name)),
-            "numpy_reference_us": _median_us(lambda: reference.update(z, measurement=name), n=50, blocks=3)}
+        kernels[f"update_{name}"] = (ekf.kernel_call("update", name),
+                                     lambda z=z, name=name: ekf.update(z, measurement=name),
+                                     lambda z=z, name=name: reference.update(z, measurement=name))
+    out = {}
+    for kernel, (bare, method, numpy_call) in kernels.items():
+        wall, cpu = _interleaved_us({"bare_call_us": (bare, CALLS), "filter_method_us": (method, CALLS),
+                                     "numpy_reference_us": (numpy_call, REFERENCE_CALLS)})
+        out[kernel] = {**wall, "cpu_us": cpu}
     return out
 
 
@@ -145,7 +161,9 @@ def _driver_input(n_steps: int) -> str:
 
 
 def run(args) -> int:
+    load = timing.load_average()
     results = {"model": MODEL, "targets": TARGETS, "build": build_loop(max(args.repeats, 1)), "step": step_cost()}
+    results["load_average"] = {"before": load, "after": timing.load_average()}
     if args.opt_levels:
         results["compile_seconds_by_level"] = compile_levels()
     if getattr(args, "instructions", False):
@@ -163,9 +181,14 @@ def _print(results: dict) -> None:
     b = results["build"]
     print(f"{MODEL}: full build {b['full_build_s']:.2f} s, no-op {b['noop_build_s']:.2f} s, "
           f"after a one-line edit {b['edit_build_s']:.2f} s ({b['generated_c_lines']} lines of C)")
-    print(f"{'kernel':28s} {'bare call us':>13s} {'filter us':>10s} {'numpy us':>10s}")
+    load = results["load_average"]
+    print(f"µs per call, medians of {ROUNDS} interleaved rounds (cpu: the thread's CPU time); load average "
+          f"{load['before'][0]:.2f} before, {load['after'][0]:.2f} after")
+    print(f"{'kernel':28s} {'bare call us':>13s} {'(cpu)':>7s} {'filter us':>10s} {'(cpu)':>7s} {'numpy us':>10s} {'(cpu)':>7s}")
     for name, row in results["step"].items():
-        print(f"{name:28s} {row['bare_call_us']:13.2f} {row['filter_method_us']:10.2f} {row['numpy_reference_us']:10.1f}")
+        cpu = row["cpu_us"]
+        print(f"{name:28s} {row['bare_call_us']:13.2f} {cpu['bare_call_us']:7.2f} {row['filter_method_us']:10.2f} "
+              f"{cpu['filter_method_us']:7.2f} {row['numpy_reference_us']:10.1f} {cpu['numpy_reference_us']:7.1f}")
     for level, seconds in results.get("compile_seconds_by_level", {}).items():
         print(f"compile {level}: {seconds:.2f} s")
     counts = results.get("instructions_per_step")

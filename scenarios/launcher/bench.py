@@ -12,19 +12,20 @@ Paths (rows ``{"filter", "path", "us_per_step", ...}``):
   the timed loop (three numpy indexings, ~0.1 µs each: the loop's cost, not the call's);
 - ``compiled_step_python``: the calls of ``compiled_step`` with the fast path off
   (``filter.fast_path = False``): every call through the Python contract;
-  the three are timed in alternate batches so that they see the same machine load;
 - ``c_loop``: the same generated ``launcher_<filter>_step_radar`` called in a C loop (no Python
   per step) over the same record, compiled against build/launcher/ with the library's flags and
-  loaded into this process (ctypes, one call per batch of 100 steps): its batches alternate with
-  the step paths' above, so the ratio ``compiled_step / c_loop`` compares batches taken under
-  the same load; ``ROUNDS`` rounds, medians, and each round's ratio reported (the spread);
+  loaded into this process (ctypes, one call per batch of 100 steps);
 - ``c_loop_process``: the same C loop as a program of its own (the harness ``--instructions``
-  counts), run after each round's batches, its time measured by the program itself;
+  counts), its wall and CPU time measured by the program itself;
 - ``compiled_run``: per step inside one ``launcher_<filter>_step_radar_run`` call;
 - ``filterpy`` (when FilterPy is installed, ``pip install -e .[bench]``): FilterPy's EKF and UKF
   on the same model, calling our compiled f_d, F, h, H, with the same kappa.
-Each figure is the median over batches of consecutive steps of a real 20 Hz flight segment
-(scenarios/timing.py).
+Every path is timed in each of ``ROUNDS`` interleaved rounds (:func:`time_paths`): the step
+paths and ``c_loop`` in alternate batches of 100 steps, then a share of each other path, so
+that every figure sees the same machine load; each figure is the median over rounds, of wall
+time and of the timing thread's CPU time (the CPU column: what a path costs, whatever else the
+machine runs; a long call such as a whole run is preempted on a loaded machine, so its wall time
+is the load's as much as its own). The printout states the load average before and after.
 ``--campaign`` adds ``campaign_wall_s``: the wall time of the default ``compare`` campaign (4 cases
 x 100 runs x both filters; ``--scheduler`` runs it on Dask; tables and figures not included), its
 throughput per worker, its CPU seconds split into the compiled runs and the rest, and the library
@@ -37,8 +38,8 @@ update, the fused step, a step inside the run loop, a backward step of the RTS s
 from __future__ import annotations
 
 import ctypes
+import os
 import shutil
-import statistics
 import subprocess
 import tempfile
 import time
@@ -104,39 +105,75 @@ def _options(family: str) -> dict:
     return {"gate": "none", **({"kappa": TUNING["kappa"]} if family == "ukf" else {})}
 
 
-#: Rounds of the step timing (medians over rounds; the spread of the rounds' ratios is reported).
+#: Rounds (medians over rounds; the spread of the rounds' ratios is reported).
 ROUNDS = 5
 #: Steps per round and path, at least (``--steps`` / ROUNDS if larger): 10 batches of 100.
 MIN_ROUND_STEPS = 1000
 
 
-def time_steps_and_c_loop(model, work: Workload) -> tuple[dict[str, dict[str, float]], dict]:
-    """µs per step of the Python step paths, of ``c_loop`` and of ``c_loop_process``, per filter:
-    medians over :data:`ROUNDS` rounds. A round times every path but the last in alternate batches
-    of 100 steps (the C loop in this process, :class:`CLoop`), so that compiled_step / c_loop
-    compares batches taken under the same load (this 2-core machine swings between ~2.0 and ~3.6 µs
-    for the same C EKF loop as other jobs come and go), then runs the separate-process C loop (the
-    harness of ``--instructions``) over as many steps. Also the spread: per filter and round,
-    compiled_step / c_loop and compiled_step / c_loop_process."""
+def time_paths(model, work: Workload, reference_steps: int) -> tuple[dict[str, dict[str, timing.Samples]], dict]:
+    """Every path of both filters in :data:`ROUNDS` interleaved rounds, so that every path sees
+    the machine load of every round (this shared 2-core machine swings between ~2.0 and ~3.6 µs
+    for the same C EKF step as other jobs come and go; a path timed on its own reads whatever
+    load its moment had). A round runs, per filter, the step paths and the in-process C loop in
+    alternate batches of 100 steps (:func:`time_compiled_step`, so compiled_step / c_loop compares
+    batches taken under the same load), then one share of each other path (:func:`round_shares`:
+    whole compiled runs, the NumPy reference, FilterPy, the C loop as a program of its own).
+    Per path: wall and this thread's CPU seconds per step of each round (medians over the
+    rounds are the figures); the spread: per filter and round, compiled_step / c_loop and
+    compiled_step / c_loop_process."""
     steps = max(MIN_ROUND_STEPS, work.steps // ROUNDS)
     directory = build_model("launcher").directory
     with tempfile.TemporaryDirectory() as tmp:
         loop = CLoop(work, directory, Path(tmp))
-        exe = _compile_c_loop(directory, Path(tmp))
-        stdin = _c_loop_input(work)
+        program = CLoopProgram(_compile_c_loop(directory, Path(tmp)), _c_loop_input(work), steps)
+        shares = {family: round_shares(model, family, work, steps, reference_steps, program) for family in FILTERS}
         rounds = []
-        for _ in range(ROUNDS):
+        for i in range(ROUNDS):
             figures = {}
             for family in FILTERS:
-                figures[family] = time_compiled_step(model, family, work, steps=steps, c_loop=loop)
-                figures[family]["c_loop_process"] = _c_loop_process(exe, stdin, family, steps)
+                batches = time_compiled_step(model, family, work, steps=steps, c_loop=loop)
+                figures[family] = {path: (b.median, b.cpu_median) for path, b in batches.items()}
+                figures[family].update({path: share(i) for path, share in shares[family].items()})
             rounds.append(figures)
-    medians = {family: {path: statistics.median(r[family][path] for r in rounds) for path in rounds[0][family]}
-               for family in FILTERS}
-    spread = {f"{family} compiled_step/{loop_path}": timing.round_ratios([r[family]["compiled_step"] for r in rounds],
-                                                                         [r[family][loop_path] for r in rounds])
+    samples = {family: timing.from_rounds([r[family] for r in rounds]) for family in FILTERS}
+    spread = {f"{family} compiled_step/{loop_path}": timing.round_ratios(samples[family]["compiled_step"],
+                                                                         samples[family][loop_path])
               for family in FILTERS for loop_path in ("c_loop", "c_loop_process")}
-    return medians, spread
+    return samples, spread
+
+
+def round_shares(model, family: str, work: Workload, steps: int, reference_steps: int,
+                 program: "CLoopProgram") -> dict:
+    """Per path, the function that runs round ``i``'s share and returns (wall, CPU) seconds per
+    step: ``compiled_run`` whole records (at least ``steps`` steps), ``numpy_reference`` and
+    ``filterpy`` ``reference_steps / ROUNDS`` steps each (one filter of each goes on along the
+    record from round to round), ``c_loop_process`` ``steps`` steps of the C program."""
+    share = max(1, reference_steps // ROUNDS)
+    shares = {"compiled_run": compiled_run_share(model, family, work, steps),
+              "numpy_reference": stepping_share(reference_stepper(family, work), work, share)}
+    stepper = filterpy_stepper(model, family, work)
+    if stepper is not None:
+        shares["filterpy"] = stepping_share(stepper, work, share)
+    shares["c_loop_process"] = lambda i: program.run(family)
+    return shares
+
+
+class CLoopProgram:
+    """``c_loop_process``: :data:`C_LOOP` as a program of its own (the harness ``--instructions``
+    counts) over ``steps`` steps; its wall and CPU times per step are measured by the program."""
+
+    def __init__(self, exe: Path, stdin: str, steps: int):
+        self.exe, self.stdin, self.steps = exe, stdin, steps
+
+    def run(self, family: str) -> tuple[float, float]:
+        """(wall, CPU) seconds per step: medians over the program's batches of 100 steps."""
+        proc = subprocess.run([str(self.exe), family, str(self.steps)], input=self.stdin, capture_output=True,
+                              text=True, check=True)
+        wall, code, cpu = proc.stdout.split()
+        if int(code):
+            raise RuntimeError(f"c_loop: {family} step returned a failure code")
+        return 1e-6 * float(wall), 1e-6 * float(cpu)
 
 
 def _compile_c_loop(directory: Path, tmp: Path) -> Path:
@@ -145,21 +182,13 @@ def _compile_c_loop(directory: Path, tmp: Path) -> Path:
                                     defines=("-D_POSIX_C_SOURCE=199309L",))
 
 
-def _c_loop_process(exe: Path, stdin: str, family: str, steps: int) -> float:
-    """µs per step of the C loop as a program of its own (median over its batches of 100)."""
-    proc = subprocess.run([str(exe), family, str(steps)], input=stdin, capture_output=True, text=True, check=True)
-    value, code = proc.stdout.split()
-    if int(code):
-        raise RuntimeError(f"c_loop: {family} step returned a failure code")
-    return float(value)
-
-
 def time_compiled_step(model, family: str, work: Workload, batch: int = 100, steps: int | None = None,
-                       c_loop: "CLoop | None" = None) -> dict[str, float]:
-    """µs per ``step`` call: ``compiled_step`` and ``compiled_step_rows`` (C fast path, inputs
-    ready or indexed in the loop) and ``compiled_step_python`` (the Python contract path), each
-    on its own filter over the same ``steps`` (default ``work.steps``), in alternate batches; with
-    ``c_loop``, also the C loop's batches over the same steps, in turn with them."""
+                       c_loop: "CLoop | None" = None) -> dict[str, timing.Samples]:
+    """Seconds per ``step`` call of each batch: ``compiled_step`` and ``compiled_step_rows`` (C
+    fast path, inputs ready or indexed in the loop) and ``compiled_step_python`` (the Python
+    contract path), each on its own filter over the same ``steps`` (default ``work.steps``), in
+    alternate batches; with ``c_loop``, also the C loop's batches over the same steps, in turn
+    with them."""
     paths = ("compiled_step", "compiled_step_rows", "compiled_step_python")
     filters = {path: model.filter(family, work.x0, work.P0, TUNING["Q"], t0=work.base_times[0], **_options(family))
                for path in paths}
@@ -192,8 +221,7 @@ def time_compiled_step(model, family: str, work: Workload, batch: int = 100, ste
         return prepared
 
     batches = -(-(work.steps if steps is None else steps) // batch)
-    samples = timing.interleaved({path: batch_of(path, f) for path, f in filters.items()}, batches, calls=batch)
-    return timing.medians(samples)
+    return timing.interleaved({path: batch_of(path, f) for path, f in filters.items()}, batches, calls=batch)
 
 
 
@@ -225,28 +253,41 @@ class CLoop:
             raise RuntimeError(f"c_loop: {family} step returned a failure code")
 
 
-def time_compiled_run(model, family: str, work: Workload) -> float:
+def compiled_run_share(model, family: str, work: Workload, steps: int):
+    """Round ``i``'s share of ``compiled_run``: whole records through one ``run`` call each (as
+    many as make ``steps`` steps, at least one), (wall, CPU) seconds per step."""
     f = model.filter(family, work.x0, work.P0, TUNING["Q"], t0=work.base_times[0], **_options(family))
     n = len(work.base_times)
-    repeats = max(1, int(np.ceil(work.steps / n)))
+    records = max(1, int(np.ceil(steps / n)))
 
-    def whole_record():
-        f.x, f.P, f.t = work.x0, work.P0, work.base_times[0]
-        f.run(work.base_times, work.z, "radar", q=work.q)
-    return timing.repeated(whole_record, max(repeats, 3), calls=n).us
+    def whole_records():
+        for _ in range(records):
+            f.x, f.P, f.t = work.x0, work.P0, work.base_times[0]
+            f.run(work.base_times, work.z, "radar", q=work.q)
+    return lambda i: per_step(timing.timed(whole_records), records * n)
 
 
-def time_reference(family: str, work: Workload, steps: int, batch: int = 50) -> float:
+def stepping_share(step, work: Workload, steps: int):
+    """Round ``i``'s share of a filter stepped from Python, ``step(t_previous, dt, z, q)``: steps
+    ``i * steps`` to ``(i + 1) * steps - 1`` of the record (repeated), (wall, CPU) s per step."""
+    def share(i):
+        def steps_of():
+            for k in range(i * steps, (i + 1) * steps):
+                j = work.index(k)
+                step(work.base_times[j - 1], 1.0 / RATE_HZ, work.z[j], work.q[j])
+        return per_step(timing.timed(steps_of), steps)
+    return share
+
+
+def per_step(timed: tuple, steps: int) -> tuple[float, float]:
+    """(wall, CPU) seconds per step from :func:`timing.timed`'s (result, wall, CPU) over ``steps``."""
+    _, wall, cpu = timed
+    return wall / steps, cpu / steps
+
+
+def reference_stepper(family: str, work: Workload):
     ref = ReferenceFilter("launcher", family, work.x0, work.P0, TUNING["Q"], kappa=TUNING["kappa"])
-    times, dt = work.base_times, 1.0 / RATE_HZ
-
-    def steps_of(b):
-        for k in range(b * batch, (b + 1) * batch):
-            i = work.index(k)
-            ref.step(times[i - 1], dt, work.z[i], "radar", work.q[i])
-    return timing.interleaved({"reference": steps_of}, max(1, steps // batch), calls=batch)["reference"].us
-
-
+    return lambda t, dt, z, q: ref.step(t, dt, z, "radar", q)
 
 
 #: Parts of a step counted by ``--instructions``: the predict and update calls on their own,
@@ -328,63 +369,60 @@ def _instructions_per_step(exe: Path, family: str, part: str, stdin: str, tmp: P
     return (many - few) / 1000, {name: (n - by_few.get(name, 0)) / 1000 for name, n in by_many.items()}
 
 
-def time_filterpy(model, family: str, work: Workload, steps: int) -> float | None:
-    """FilterPy's own EKF/UKF on our compiled model functions (None if FilterPy is absent)."""
+def filterpy_stepper(model, family: str, work: Workload):
+    """FilterPy's own EKF/UKF step on our compiled model functions (None if FilterPy is absent)."""
     try:
         from .filterpy_adapter import make_filterpy_filter
     except ImportError:
         return None
-    step = make_filterpy_filter(model, family, work.x0, work.P0, TUNING["Q"], TUNING["kappa"])
-    batch = 50
-
-    def steps_of(b):
-        for k in range(b * batch, (b + 1) * batch):
-            i = work.index(k)
-            step(work.base_times[i - 1], 1.0 / RATE_HZ, work.z[i], work.q[i])
-    return timing.interleaved({"filterpy": steps_of}, max(1, steps // batch), calls=batch)["filterpy"].us
+    return make_filterpy_filter(model, family, work.x0, work.P0, TUNING["Q"], TUNING["kappa"])
 
 
 def measure(steps: int, reference_steps: int, campaign: bool, instructions: bool = False,
             scheduler: str | None = None) -> dict:
+    load_before = timing.load_average()
     model = load("launcher", backend="compiled")
     work = Workload(steps)
     c_loop = c_loop_instructions(work) if instructions else {family: {} for family in FILTERS}
-    interleaved, spread = time_steps_and_c_loop(model, work)
+    samples, spread = time_paths(model, work, reference_steps)
     rows = []
     for family in FILTERS:
-        figures = {"numpy_reference": time_reference(family, work, reference_steps),
-                   **interleaved[family],
-                   "compiled_run": time_compiled_run(model, family, work),
-                   "filterpy": time_filterpy(model, family, work, reference_steps)}
-        for path, value in figures.items():
-            if value is None:
+        for path in PATHS:
+            if path not in samples[family]:
                 continue
-            row = {"filter": family, "path": path, "us_per_step": value}
+            row = {"filter": family, "path": path, "us_per_step": samples[family][path].us,
+                   "cpu_us_per_step": samples[family][path].cpu_us}
             if path == "c_loop" and "instructions_per_step" in c_loop[family]:
                 row["instructions_per_step"] = c_loop[family]["instructions_per_step"]
                 row["instructions_by_part"] = c_loop[family]["instructions_by_part"]
             rows.append(row)
     report = {"rows": rows, "paper_ms_per_step": L.PAPER_MS_PER_STEP, "ratios": ratios(rows),
-              "ratios by round": spread, "steps": steps, "reference_steps": reference_steps}
+              "ratios by round": spread, "steps": steps, "reference_steps": reference_steps, "rounds": ROUNDS,
+              "load_average": {"before": load_before, "after": timing.load_average()}}
     if campaign:
         report.update(time_campaign(scheduler))
     return report
 
 
+#: The rows' order (the table's): slowest first.
+PATHS = ("numpy_reference", "filterpy", "compiled_step_python", "compiled_step_rows", "compiled_step", "compiled_run",
+         "c_loop", "c_loop_process")
+
+
 def time_campaign(scheduler: str | None = None, runs: int = 100) -> dict:
     """Wall and CPU time of the default campaign (4 cases x ``runs`` x both filters), its
     throughput per worker (runs/s of wall time divided by the workers), where the CPU went, and
-    which build it ran. ``campaign_cpu_s`` is this process's CPU (all the work for local threads);
-    the tasks' own CPU (``campaign_task_cpu_s``, measured where they run) splits into the compiled
+    which build it ran. ``campaign_cpu_s`` is the CPU of this process and of the worker
+    processes the campaign started (a LocalCluster's; all the work either way); the tasks' own CPU (``campaign_task_cpu_s``, measured where they run) splits into the compiled
     runs of each filter (``campaign_run_cpu_s``) and the rest (the truth, once per process and
     rate; radar draws, filter set-up, errors, NEES, per-run rows)."""
-    start, cpu = time.perf_counter(), time.process_time()
+    start = time.perf_counter()
     campaign = Campaign(runs, 2005, scheduler=scheduler)
     results = campaign.run()
     wall = time.perf_counter() - start
     task_cpu = sum(r.task_cpu_s for r in results)
     run_cpu = {f: sum(r.cpu_s[f] for r in results) for f in FILTERS}
-    return {"campaign_runs": runs, "campaign_wall_s": wall, "campaign_cpu_s": time.process_time() - cpu,
+    return {"campaign_runs": runs, "campaign_wall_s": wall, "campaign_cpu_s": campaign.stats.cpu_s,
             "campaign_task_cpu_s": task_cpu, "campaign_run_cpu_s": run_cpu,
             "campaign_other_task_cpu_s": task_cpu - sum(run_cpu.values()),
             "campaign_build": campaign_build(campaign),
@@ -404,7 +442,7 @@ def campaign_lines(report: dict) -> list[str]:
     runs, build = report["campaign_run_cpu_s"], report["campaign_build"]
     units = f", some units {'/'.join(build['unit_optimization'])}" if build["unit_optimization"] else ""
     return [f"campaign (4 cases x {report['campaign_runs']} runs x 2 filters): {report['campaign_wall_s']:.1f} s wall, "
-            f"{report['campaign_cpu_s']:.1f} s CPU here, {report['campaign_executor']}, "
+            f"{report['campaign_cpu_s']:.1f} s CPU (here and in its worker processes), {report['campaign_executor']}, "
             f"{report['campaign_runs_per_s_per_worker']:.1f} runs/s per worker",
             f"  CPU in the tasks {report['campaign_task_cpu_s']:.1f} s: compiled runs EKF {runs['ekf']:.1f} s + "
             f"UKF {runs['ukf']:.1f} s, the rest (truth, draws, metrics) {report['campaign_other_task_cpu_s']:.1f} s; "
@@ -446,16 +484,19 @@ def ratios(rows: list[dict]) -> dict:
 
 def human_table(report: dict) -> str:
     value = {(r["filter"], r["path"]): r["us_per_step"] for r in report["rows"]}
-    paths = [p for p in ("numpy_reference", "filterpy", "compiled_step_python", "compiled_step_rows", "compiled_step",
-                         "compiled_run", "c_loop", "c_loop_process")
-             if ("ekf", p) in value]
-    lines = [f"{'path':<18}{'EKF us/step':>14}{'UKF us/step':>14}{'UKF/EKF':>10}",
-             f"{'paper (MATLAB)':<18}{report['paper_ms_per_step']['ekf'] * 1e3:>14.1f}"
-             f"{report['paper_ms_per_step']['ukf'] * 1e3:>14.1f}"
-             f"{report['paper_ms_per_step']['ukf'] / report['paper_ms_per_step']['ekf']:>10.2f}"]
+    cpu = {(r["filter"], r["path"]): r["cpu_us_per_step"] for r in report["rows"]}
+    paths = [p for p in PATHS if ("ekf", p) in value]
+    load = report["load_average"]
+    lines = [f"medians of {report['rounds']} interleaved rounds; wall and this thread's CPU µs per step; "
+             f"load average {load['before'][0]:.2f} before, {load['after'][0]:.2f} after (1 min; "
+             f"{load['after'][1]:.2f} over 5 min) on {os.cpu_count()} cores",
+             f"{'path':<21}{'EKF us/step':>12}{'(CPU)':>9}{'UKF us/step':>13}{'(CPU)':>9}{'UKF/EKF':>9}",
+             f"{'paper (MATLAB)':<21}{report['paper_ms_per_step']['ekf'] * 1e3:>12.1f}{'':>9}"
+             f"{report['paper_ms_per_step']['ukf'] * 1e3:>13.1f}{'':>9}"
+             f"{report['paper_ms_per_step']['ukf'] / report['paper_ms_per_step']['ekf']:>9.2f}"]
     for path in paths:
         e, u = value[("ekf", path)], value[("ukf", path)]
-        lines.append(f"{path:<18}{e:>14.2f}{u:>14.2f}{u / e:>10.2f}")
+        lines.append(f"{path:<21}{e:>12.2f}{cpu[('ekf', path)]:>9.2f}{u:>13.2f}{cpu[('ukf', path)]:>9.2f}{u / e:>9.2f}")
     counts = {r["filter"]: r["instructions_per_step"] for r in report["rows"] if "instructions_per_step" in r}
     if counts:
         lines.append(f"{'c_loop instr.':<18}{counts['ekf']:>14.0f}{counts['ukf']:>14.0f}{counts['ukf'] / counts['ekf']:>10.2f}")

@@ -6,8 +6,13 @@
    argv[1]: ekf|ukf, argv[2]: steps, argv[3] (optional) part: step (default), predict, update, run, backward.
    step/predict/update: one call of launcher_<filter>_<part>[_radar] per step; run: one call of
    launcher_<filter>_step_radar_run over all the steps; backward: that run, then the smoother's
-   backward pass launcher_<filter>_smooth_run over it. The record restarts from x0, P0 at its end. */
-static double now(void) { struct timespec ts; clock_gettime(CLOCK_MONOTONIC, &ts); return ts.tv_sec + 1e-9 * ts.tv_nsec; }
+   backward pass launcher_<filter>_smooth_run over it. The record restarts from x0, P0 at its end.
+   stdout: wall µs per step (median over batches of 100 steps), the failure code, this thread's CPU µs
+   per step (median over the batches). */
+static double clock_s(clockid_t id) { struct timespec ts; clock_gettime(id, &ts); return ts.tv_sec + 1e-9 * ts.tv_nsec; }
+static double now(void) { return clock_s(CLOCK_MONOTONIC); }
+static double cpu_now(void) { return clock_s(CLOCK_THREAD_CPUTIME_ID); }
+static void sort(double *v, int n) { int i; for (i = 1; i < n; ++i) { double a = v[i]; int m = i - 1; while (m >= 0 && v[m] > a) { v[m + 1] = v[m]; --m; } v[m + 1] = a; } }
 static int rd(double *v, int n) { int i; for (i = 0; i < n; ++i) if (scanf("%lf", &v[i]) != 1) return 0; return 1; }
 static double T[20000], Z[60000], QS[40000];
 static double RT[20000], RDT[20000], RZ[60000], RQ[40000], RM[60000], XH[120000], PH[720000];
@@ -39,7 +44,7 @@ static int backward(int ukf, int steps) {
              : launcher_ekf_smooth_run(steps, RT, RDT, XH, PH, p, Q, SH, XS, PS, SS);
 }
 int main(int argc, char **argv) {
-  double dt = 0.05, batches[1000], start;
+  double dt = 0.05, batches[1000], cpu_batches[1000], start, cpu_start;
   int n, i, k, b, nb, steps, ukf, code = 0;
   char part = argc > 3 ? argv[3][0] : 's';
   if (argc < 3 || !rd(x0, 6) || !rd(P0, 36) || !rd(Q, 36) || !rd(R, 9) || !rd(&kappa, 1) || !rd(p, 6)) return 2;
@@ -47,24 +52,26 @@ int main(int argc, char **argv) {
   if (sscanf(argv[2], "%d", &steps) != 1 || scanf("%d", &n) != 1 || n > 20000) return 2;
   for (i = 0; i < n; ++i) if (!rd(&T[i], 1) || !rd(&Z[3 * i], 3) || !rd(&QS[2 * i], 2)) return 2;
   if (part == 'r' || part == 'b') {
-    start = now();
+    start = now(), cpu_start = cpu_now();
     code = run(ukf, n, steps);
     if (part == 'b' && code == 0) code = backward(ukf, steps);
-    printf("%.6f %d\n", 1e6 * (now() - start) / steps, code);
+    printf("%.6f %d %.6f\n", 1e6 * (now() - start) / steps, code, 1e6 * (cpu_now() - cpu_start) / steps);
     return 0;
   }
   memcpy(x, x0, sizeof x); memcpy(P, P0, sizeof P);
   nb = steps / 100 > 1000 ? 1000 : steps / 100;
   for (b = 0, k = 0; b < nb; ++b) {
-    start = now();
+    start = now(), cpu_start = cpu_now();
     for (i = 0; i < 100; ++i, ++k) {
       int j = 1 + k % (n - 1);
       if (j == 1) { memcpy(x, x0, sizeof x); memcpy(P, P0, sizeof P); }
       code |= call(ukf, part, j, dt);
     }
     batches[b] = (now() - start) / 100;
+    cpu_batches[b] = (cpu_now() - cpu_start) / 100;
   }
-  for (i = 1; i < nb; ++i) { double v = batches[i]; int m = i - 1; while (m >= 0 && batches[m] > v) { batches[m + 1] = batches[m]; --m; } batches[m + 1] = v; }
-  printf("%.6f %d\n", 1e6 * batches[nb / 2], code);
+  sort(batches, nb);
+  sort(cpu_batches, nb);
+  printf("%.6f %d %.6f\n", 1e6 * batches[nb / 2], code, 1e6 * cpu_batches[nb / 2]);
   return 0;
 }

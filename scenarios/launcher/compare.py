@@ -109,7 +109,8 @@ def run(args) -> int:
         print("The paper's claims, checked on these runs:")
         print_claims(checked)
         print(f"wrote {out}/ ({saved.name}) in {built + wall + written:.1f} s: build {built:.1f} s, campaign {wall:.1f} s "
-              f"({campaign.stats.executor}, {campaign.stats.workers} workers), tables and figures {written:.1f} s")
+              f"({campaign.stats.executor}, {campaign.stats.workers} workers; {campaign.stats.cpu_s:.1f} CPU-s in this "
+              f"process and the worker processes it started), tables and figures {written:.1f} s")
     return 0
 
 
@@ -201,6 +202,7 @@ def make_summary(results: list[CaseResult], args, wall: float, campaign: Campaig
                 "rms_eq11": dict(zip(STATE_NAMES, result.whole_flight(family).tolist())),
                 **consistency(result, family),
                 "wall_s": result.wall_s[family],
+                "cpu_s": result.cpu_s[family],
                 "steps": int(len(result.times) * result.errors[family].runs),
                 "us_per_step_in_run": 1e6 * result.wall_s[family] / (len(result.times) * result.errors[family].runs),
                 "failed_steps": result.failed_steps[family],
@@ -211,7 +213,9 @@ def make_summary(results: list[CaseResult], args, wall: float, campaign: Campaig
             }
         cases[result.case.label] = entry
     rows = table_rows(results)
+    stats = campaign.stats
     return {"runs": args.runs, "seed": args.seed, "duration_s": args.duration, "wall_s": wall,
+            "executor": stats.executor, "workers": stats.workers, "campaign_cpu_s": stats.cpu_s,
             "filters": campaign.preset, "codegen": campaign.codegen, "units": UNITS,
             "tuning": {k: np.asarray(v).tolist() for k, v in campaign.tuning.items()},
             "mean_abs_log10_vs_paper": mean_abs_log10_vs_paper(rows), "table3_cells": 2 * len(rows),

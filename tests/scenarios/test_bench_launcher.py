@@ -21,6 +21,13 @@ def test_bench_json_has_every_path(capsys, launcher_compiled):
     by_round = report["ratios by round"]
     assert sorted(by_round) == sorted(f"{f} compiled_step/{p}" for f in ("ekf", "ukf") for p in ("c_loop", "c_loop_process"))
     assert all(len(v) == 5 and min(v) > 0 for v in by_round.values())
+    # every path timed in the same interleaved rounds, with its thread's CPU time beside its wall
+    # time (a thread's CPU time cannot exceed its wall time: round-off of the C program's print aside)
+    assert report["rounds"] == 5
+    for row in report["rows"]:
+        assert 0 < row["cpu_us_per_step"] <= 1.01 * row["us_per_step"] + 1e-3, row
+    load = report["load_average"]
+    assert len(load["before"]) == len(load["after"]) == 3 and min(load["before"] + load["after"]) >= 0
 
 
 def test_c_loop_does_the_work_of_compiled_step(tmp_path, launcher_compiled):

@@ -97,8 +97,8 @@ def per_run_tables(results):
 
 @pytest.fixture(scope="module")
 def cluster(launcher_compiled):
-    distributed = pytest.importorskip("distributed", reason="dask[distributed] is not installed (pip install 'symkf[dask]')")
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0") as c:
+    pytest.importorskip("distributed", reason="dask[distributed] is not installed (pip install 'symkf[dask]')")
+    with H.local_cluster(2) as c:                # the cluster --scheduler local:2 makes
         yield c
 
 
@@ -123,6 +123,34 @@ def test_dask_local_cluster_gives_bit_identical_per_run_results(cluster, on_thre
         for f in C.FILTERS:
             np.testing.assert_array_equal(a.errors[f].rms(), b.errors[f].rms())
             np.testing.assert_array_equal(a.errors[f].mean_nees(), b.errors[f].mean_nees())
+
+
+def test_a_worker_computes_each_flight_once_and_loads_the_model_once(cluster, on_threads):
+    """Many tasks per worker: each worker computes a rate's truth and radar track once and loads
+    the model once (per-process caches keyed by their inputs and by the build's content hash);
+    the workers run under the LocalCluster settings that spare CPU (no malloc trim threshold)."""
+    executor = H.DaskExecutor(cluster.scheduler_address)
+    try:
+        campaign = C.Campaign(RUNS, SEED, rates=(20, 10), duration=DURATION, chunk_runs=1)
+        campaign.run(executor)
+        caches = executor.client.run(lambda: (C._case_flight.cache_info(), sorted(map(str, H._MODELS)),
+                                              os.environ.get("MALLOC_TRIM_THRESHOLD_")))
+    finally:
+        executor.close()
+    assert len(caches) == 2 and len(campaign.tasks()) == 4 * RUNS
+    for flights, models, trim in caches.values():
+        assert flights.misses == flights.currsize <= 2        # at most one truth per rate, never recomputed
+        assert flights.hits + flights.misses >= 1
+        assert models == [str(campaign.model_key)]
+        assert trim is None
+
+
+def test_a_local_cluster_campaign_counts_its_workers_cpu(launcher_compiled):
+    pytest.importorskip("distributed", reason="dask[distributed] is not installed (pip install 'symkf[dask]')")
+    campaign = C.Campaign(2, SEED, rates=(20,), duration=DURATION, scheduler="local:1", chunk_runs=1)
+    results = campaign.run()
+    task_cpu = sum(r.task_cpu_s for r in results)      # spent in the worker process only
+    assert task_cpu > 0 and campaign.stats.cpu_s >= task_cpu
 
 
 def test_a_worker_killed_mid_campaign_loses_no_run_and_counts_none_twice(cluster, on_threads):

@@ -36,6 +36,10 @@ def test_outputs_are_written_and_well_formed(short_campaign):
     claim = summary["claims"]["ukf_le_ekf_every_state_10Hz_large"]
     assert isinstance(claim["holds"], bool) and claim["says"].startswith("the UKF is at least as accurate")
     assert "10Hz large" in claim["compared"]
+    # the campaign's CPU (this process's threads did every run: at least the runs' own CPU)
+    assert summary["executor"].startswith("threads") and summary["workers"] >= 1
+    run_cpu = sum(summary["cases"][label][f]["cpu_s"] for label in summary["cases"] for f in C.FILTERS)
+    assert summary["campaign_cpu_s"] >= run_cpu > 0
 
 
 def test_numbers_are_plausible(short_campaign):
