@@ -36,17 +36,34 @@ inputs with status SYMKF_GATED, and they are written).
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import ClassVar
+
 import casadi as ca
 
 from symkf.models.base import Model
 from .. import linalg
 from ..discretize import measurement_function
 from ..model_functions import ModelFunctions, Symbols
-from ..spec import STATUS_DOMAIN, STATUS_NOT_PD, Arg, Family
+from ..spec import STATUS_DOMAIN, STATUS_NOT_PD, Arg, Family, option
 from .framework import (all_finite, compose_step, filter_spec, innovation, make_kernel, masked_noise, register_family,
                         update_outputs)
 from .iterated import IteratedOptions, iterated_update_expr, iterations
 from .rts import cross_covariance, smooth_kernel
+
+
+@dataclass(frozen=True)
+class UkfOptions:
+    """The UKF's options of its generated C (the same numbers either way)."""
+
+    centre_free: bool = option(True, "with kappa = 0 (centre weight exactly 0) skip propagating the centre sigma "
+                                     "point, picked at call time; the same numbers as propagating it")
+
+    prefix: ClassVar[str] = "ukf_"
+
+    @classmethod
+    def of(cls, config) -> "UkfOptions":
+        return cls(bool(config.get(f"{cls.prefix}centre_free", True)))
 
 
 # ---------------------------------------------------------------------- process noise
@@ -207,10 +224,14 @@ def ukf_propagation(symbols: Symbols, fns: ModelFunctions, x, P, t, dt, Q):
     n = x.shape[0]
     L, weights, ok = sigma_factor(P, s["kappa"])
     # one call, split only at an event; L lower triangular: a point x + L_i leaves x_0..x_i-1 as
-    # they are, and the function sees it (terms of those components are shared with x's)
-    fd = fns.for_filter("ukf").fd_at_points(
-        "sigma", {"x": ca.SX.sym("x", n), "L": ca.SX.sym("L", ca.Sparsity.lower(n))}, sigma_columns)
-    moved = fd(t, dt, x, ca.tril(L), s["u"], s["p"])
+    # they are, and the function sees it (terms of those components are shared with x's); with
+    # W_0 = 0 (kappa = 0) the centre point is not propagated (its weight makes it add exact zeros)
+    inputs, propagation = {"x": ca.SX.sym("x", n), "L": ca.SX.sym("L", ca.Sparsity.lower(n))}, fns.for_filter("ukf")
+    if UkfOptions.of(fns.config).centre_free:
+        moved = propagation.fd_at_points_weighted("sigma", inputs, sigma_columns)(weights[0], t, dt, x, ca.tril(L),
+                                                                                  s["u"], s["p"])
+    else:
+        moved = propagation.fd_at_points("sigma", inputs, sigma_columns)(t, dt, x, ca.tril(L), s["u"], s["p"])
     propagated = [moved[:, i] for i in range(2 * n + 1)]
     x_pred = _weighted_mean(propagated, weights)
     moved = [pt - x_pred for pt in propagated]
@@ -309,4 +330,4 @@ def ukf_kernels(model: Model, symbols: Symbols, fns: ModelFunctions) -> Family:
 
 
 register_family("ekf", ekf_kernels, options=(IteratedOptions,))
-register_family("ukf", ukf_kernels, long_compile=True)      # f_d at the sigma points
+register_family("ukf", ukf_kernels, long_compile=True, options=(UkfOptions,))      # f_d at the sigma points

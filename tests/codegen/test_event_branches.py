@@ -44,8 +44,9 @@ def test_only_event_models_branch(launcher_functions):
     model, fns = launcher_functions
     assert len(EventBranches(model, 1).branches) == 2
     assert len(EventBranches(model, 1, split_events=False).branches) == 1
-    sigma = [f for name, f in fns.for_filter("ukf").point_functions.items() if name == "sigma"]
-    assert len(sigma) == 1, "the UKF family propagates its sigma points through fd_at_points('sigma', ...)"
+    sigma = [f for name, f in fns.for_filter("ukf").point_functions.items()
+             if name in (("sigma", False), ("sigma_centre_free", True))]
+    assert len(sigma) == 2, "the UKF family propagates its sigma points through fd_at_points('sigma', ...)"
     for function in (fns.fd, fns.fd_and_jac, *sigma):
         calls = [function.instruction_MX(k).which_function() for k in range(function.n_instructions())
                  if function.instruction_id(k) == ca.OP_CALL]
