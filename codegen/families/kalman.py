@@ -59,11 +59,15 @@ class UkfOptions:
     centre_free: bool = option(True, "with kappa = 0 (centre weight exactly 0) skip propagating the centre sigma "
                                      "point, picked at call time; the same numbers as propagating it")
 
+    lanes: bool = option(True, "the host library propagates the sigma points 4 at a time in SIMD lanes on an AVX2 "
+                               "CPU (libmvec's sin/cos: round-off differs; codegen/c_backend/lanes.py); the flight "
+                               "bundle stays scalar")
+
     prefix: ClassVar[str] = "ukf_"
 
     @classmethod
     def of(cls, config) -> "UkfOptions":
-        return cls(bool(config.get(f"{cls.prefix}centre_free", True)))
+        return cls(bool(config.get(f"{cls.prefix}centre_free", True)), bool(config.get(f"{cls.prefix}lanes", True)))
 
 
 # ---------------------------------------------------------------------- process noise
