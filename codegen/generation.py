@@ -84,7 +84,7 @@ def generate_validated(model: Model, config: CodegenConfig, on_part=None) -> Bun
     for family in sorted(model.filters, key=lambda name: name not in LONG_COMPILE):    # stable: else the model's order
         made[family] = FAMILIES[family](model, symbols, functions)
         if family == "ukf":                 # its sigma points in SIMD lanes (host library only)
-            lanes = c_lanes.specs_of(functions.for_filter("ukf"), config)
+            lanes = c_lanes.specs_of(functions, config)
         if on_part is not None:
             on_part(1 + model.filters.index(family), Bundle(model.name, list(made[family].kernels), config,
                                                              model.describe(), lanes=lanes))

@@ -226,7 +226,7 @@ class ModelFunctions:
         main = self._propagation(default, "")
         self.fd, self.fd_inline, self.jac_fd, self.fd_and_jac = main.fd, main.fd_inline, main.jac_fd, main.fd_and_jac
         self.noise_gain = noise_gain(model) if model.noises else None
-        self.h, self.jac_h, self.h_and_jac = {}, {}, {}
+        self.h, self.jac_h, self.h_and_jac, self._point_h = {}, {}, {}, {}
         for name in model.measurements:
             h = measurement_function(model, name)
             ht, hx, hu, hp, hq = h.sx_in()
@@ -243,6 +243,27 @@ class ModelFunctions:
             self.h_and_jac[name] = both
             self.jac_h[name] = ca.Function(f"{prefix}_jac_h_{name}", mx, [ca.densify(both(*mx)[1])], hnames, ["H"],
                                            options)
+
+    def h_at_points(self, name: str, points) -> ca.Function:
+        """``<model>_h_<name>_at_sigma``(t, x, L, u, p, q) -> Z: h at each of ``points(x, L)`` (L lower
+        triangular), the columns of Z; called, not inlined, so that the host library can evaluate
+        it in SIMD lanes (c_backend/lanes.py). CSE shares the terms of components the points
+        leave unchanged, as in the kernel that inlined h before (the same operations, the same numbers)."""
+        key = f"h_{name}_at_sigma"
+        if key not in self._point_h:
+            model = self.model
+            h = measurement_function(model, name)
+            t, x, L = model.t, ca.SX.sym("x", model.nx), ca.SX.sym("L", ca.Sparsity.lower(model.nx))
+            u, p = ca.SX.sym("u", len(model.inputs)), ca.SX.sym("p", len(model.params))
+            q = ca.SX.sym("q", model.measurements[name].q.shape[0])
+            self._point_h[key] = ca.Function(f"{model.name}_{key}", [t, x, L, u, p, q],
+                                             [ca.horzcat(*[h(t, pt, u, p, q) for pt in points(x, L)])],
+                                             ["t", "x", "L", "u", "p", "q"], ["Z"], CALLED_OPTIONS)
+        return self._point_h[key]
+
+    def point_h_functions(self) -> list[ca.Function]:
+        """The functions :meth:`h_at_points` made so far."""
+        return list(self._point_h.values())
 
     def for_filter(self, family: str) -> Propagation:
         """The propagation functions of one family, per the config's ``<family>_*`` keys."""

@@ -5,8 +5,9 @@ of ``<prefix>_fd_sigma_plain`` (the step without an event) evaluates the points 
 with scalar libm calls: 58 % of the launcher's UKF step is sincos. This unit evaluates f_d of
 :data:`LANES` points per SIMD instruction: f_d's SX algorithm for one point is written out once as
 the body of a loop over the points (``#pragma omp simd``, GCC's ``-fopenmp-simd``), its sin, cos,
-exp, log and pow calls mapped to glibc's libmvec (the AVX2 clones ``_ZGVdN4v_*``), the terms that
-depend on t, dt, u and p only evaluated once before the loop, conditionals as lane selects.
+exp, log, pow and atan2 calls mapped to glibc's libmvec (the AVX2 clones ``_ZGVdN4v_*``), the terms
+that depend on t, dt, u and p only evaluated once before the loop, conditionals as lane selects.
+The update's h at the sigma points (eq (2)'s predicted measurements) likewise.
 
 Every other operation is CasADi's own (the same IEEE operations in the same order; ``-std=c99``
 keeps contraction into FMA off), so a propagated point differs from the scalar unit's only by
@@ -26,13 +27,19 @@ from dataclasses import dataclass
 
 import casadi as ca
 
+from ..discretize import measurement_function
+
 #: Points per SIMD instruction: AVX2's four doubles (valgrind counts AVX2, not AVX-512).
 LANES = 4
 #: libm functions with an AVX2 clone in glibc's libmvec (since glibc 2.22), declared ``simd``.
-VECTOR_MATH = ("sin", "cos", "exp", "log", "pow")
+VECTOR_MATH = ("sin", "cos", "exp", "log", "pow", "atan2")
 #: Flags of the lanes unit in the library: vectorize at -O3, libmvec through ``omp declare simd``,
 #: and sin and cos not merged into scalar sincos calls before the vectorizer sees them.
 UNIT_FLAGS = ["-DSYMKF_LANES", "-O3", "-fopenmp-simd", "-fno-builtin-sin", "-fno-builtin-cos"]
+
+#: How the units that call the lanes end (a model with events: the plain branch; without: the function).
+HOOKED_UNITS = ("_fd_sigma.c", "_fd_sigma_plain.c", "_fd_sigma_centre_free.c", "_fd_sigma_centre_free_plain.c",
+                "_at_sigma.c")
 
 _BINARY = {ca.OP_ADD: "({a}+{b})", ca.OP_SUB: "({a}-{b})", ca.OP_MUL: "({a}*{b})", ca.OP_DIV: "({a}/{b})",
            ca.OP_POW: "pow({a},{b})", ca.OP_CONSTPOW: "pow({a},{b})", ca.OP_LT: "({a}<{b})",
@@ -49,13 +56,18 @@ _UNARY = {ca.OP_ASSIGN: "{a}", ca.OP_NEG: "(-{a})", ca.OP_SQ: "({a}*{a})", ca.OP
 
 @dataclass(frozen=True)
 class LaneSpec:
-    """One scalar unit the lanes stand in for: ``symbol`` (``<model>_fn_..._fd_sigma[_centre_free]_plain``,
-    arguments (t, dt, x, L, u, p) -> X, the points x, x + L_i, x - L_i propagated as columns) and
-    ``point``, f_d(t, dt, x, u, p) of one point, an SX Function."""
+    """One scalar unit the lanes stand in for: ``symbol``, a function of the sigma points of x and a
+    lower-triangular L (x, x + L_i, x - L_i: ``<model>_fn_..._fd_sigma[_centre_free]_plain`` of
+    arguments (t, dt, x, L, u, p), or ``<model>_fn_h_<name>_at_sigma`` of (t, x, L, u, p, q)) with
+    one column of its output per point; ``point``, that function of one point (SX): its input
+    ``varying`` is the point, and ``uniform`` maps each other input to the unit's argument."""
 
     symbol: str
     point: ca.Function
     centre_free: bool
+    varying: int
+    x_arg: int
+    uniform: tuple[tuple[int, int], ...]
 
     @property
     def lane_symbol(self) -> str:
@@ -79,7 +91,7 @@ def host_flags(config, unit: str, model: str = "") -> list[str]:
         return []
     if unit.endswith("_lanes.c"):
         return list(UNIT_FLAGS)
-    return ["-DSYMKF_LANES"] if unit.endswith(("_fd_sigma_plain.c", "_fd_sigma_centre_free_plain.c")) else []
+    return ["-DSYMKF_LANES"] if unit.endswith(HOOKED_UNITS) else []
 
 
 def hook(text: str, spec: LaneSpec) -> str:
@@ -97,11 +109,12 @@ def hook(text: str, spec: LaneSpec) -> str:
 
 
 # ---------------------------------------------------------------------- f_d of one point as C
-def specs_of(propagation, config) -> tuple[LaneSpec, ...]:
-    """The lanes of a family's propagation (codegen/model_functions.py): one per sigma-point
-    function it made (all points, or the centre-free ones), () if lanes are off."""
+def specs_of(functions, config) -> tuple[LaneSpec, ...]:
+    """The lanes of a UKF's functions (codegen/model_functions.py): f_d at the sigma points (all,
+    or the centre-free ones) and each measurement's h at the sigma points; () if lanes are off."""
     if not enabled(config):
         return ()
+    propagation = functions.for_filter("ukf")
     branches = propagation.branches
     model = branches.model
     t, dt, x = model.t, ca.SX.sym("dt"), ca.SX.sym("x", model.nx)
@@ -113,7 +126,15 @@ def specs_of(propagation, config) -> tuple[LaneSpec, ...]:
     for key in propagation.point_functions:
         if key in (("sigma", False), ("sigma_centre_free", True)):
             name = f"{propagation.prefix}_fd_{key[0]}{plain}"
-            made.append(LaneSpec(f"{model.name}_fn_{name[len(model.name) + 1:]}", point, key[1]))
+            made.append(LaneSpec(f"{model.name}_fn_{name[len(model.name) + 1:]}", point, key[1], 2, 2,
+                                 ((0, 0), (1, 1), (3, 4), (4, 5))))
+    for function in functions.point_h_functions():
+        measurement = function.name()[len(model.name) + 3:-len("_at_sigma")]
+        h = ca.Function("h", measurement_function(model, measurement).sx_in(),
+                        measurement_function(model, measurement).call(measurement_function(model, measurement).sx_in()),
+                        {"cse": True})
+        made.append(LaneSpec(f"{model.name}_fn_{function.name()[len(model.name) + 1:]}", h, False, 1, 1,
+                             ((0, 0), (2, 3), (3, 4), (4, 5))))
     return tuple(made)
 
 
@@ -164,16 +185,18 @@ def _padded(count: int) -> int:
 def lane_function(spec: LaneSpec) -> str:
     """The C of one spec: the AVX2 loop over the points and the entry point that forms the points
     from x and L (as the scalar unit does: x_k + L_ki, x_k - L_ki for k >= i, x_k above) and
-    writes the columns of X; it returns 0 without AVX2 (the caller's scalar code runs)."""
-    fn, n = spec.point, spec.point.size1_in(2)
+    writes the columns of its output; it returns 0 without AVX2 (the caller's scalar code runs)."""
+    fn, n = spec.point, spec.point.size1_in(spec.varying)
+    m = fn.nnz_out(0)
     first = 1 if spec.centre_free else 0
     points = 2 * n + 1 - first
     pad = _padded(points)
-    uniform, lane, outputs = point_code(fn, varying=2)
+    uniform, lane, outputs = point_code(fn, spec.varying)
     declared = [line.split(" = ")[0] for line in uniform]
     name = spec.lane_symbol
+    inputs = "".join(f"  in[{i}] = arg[{j}] ? arg[{j}] : zeros;\n" for i, j in spec.uniform)
     body = [
-        f"/* f_d of {points} points in lanes of {LANES} ({pad} with the padding: copies of x) */",
+        f"/* {fn.name()} of {points} points in lanes of {LANES} ({pad} with the padding: copies of x) */",
         f"__attribute__((target(\"avx2\"))) static void {name}_avx2(const double* const* in, "
         f"double (*xs)[{pad}], double (*ys)[{pad}]) {{",
         *([f"  double {', '.join(declared)};"] if declared else []),
@@ -187,14 +210,14 @@ def lane_function(spec: LaneSpec) -> str:
         "",
         f"SYMKF_INTERNAL int {name}(const double** arg, double** res) {{",
         f"  static const double zeros[{max(fn.nnz_in(i) for i in range(fn.n_in())) + n * n}] = {{0.}};",
-        f"  double xs[{n}][{pad}], ys[{n}][{pad}];",
-        "  const double* in[5];",
+        f"  double xs[{n}][{pad}], ys[{m}][{pad}];",
+        f"  const double* in[{fn.n_in()}];",
         "  const double *x, *L;",
         "  int c, k, i, offset;",
         "  if (!__builtin_cpu_supports(\"avx2\")) return 0;",
-        "  in[0] = arg[0] ? arg[0] : zeros; in[1] = arg[1] ? arg[1] : zeros; in[2] = zeros;",
-        "  in[3] = arg[4] ? arg[4] : zeros; in[4] = arg[5] ? arg[5] : zeros;",
-        "  x = arg[2] ? arg[2] : zeros; L = arg[3] ? arg[3] : zeros;",
+        f"  in[{spec.varying}] = zeros;",
+        inputs.rstrip("\n"),
+        f"  x = arg[{spec.x_arg}] ? arg[{spec.x_arg}] : zeros; L = arg[{spec.x_arg + 1}] ? arg[{spec.x_arg + 1}] : zeros;",
         f"  for (c = 0; c < {pad}; ++c) for (k = 0; k < {n}; ++k) xs[k][c] = x[k];",
         f"  for (c = {max(first, 1)}; c <= {2 * n}; ++c) {{      /* column c: x + L_i (c <= n) or x - L_i */",
         f"    i = c <= {n} ? c - 1 : c - {n + 1};",
@@ -206,7 +229,7 @@ def lane_function(spec: LaneSpec) -> str:
         "  if (!res[0]) return 1;",
         *([f"  for (k = 0; k < {n}; ++k) res[0][k] = x[k];      /* the centre (weight 0) as it is */"]
           if spec.centre_free else []),
-        f"  for (c = {first}; c <= {2 * n}; ++c) for (k = 0; k < {n}; ++k) res[0][k + {n} * c] = ys[k][c - {first}];",
+        f"  for (c = {first}; c <= {2 * n}; ++c) for (k = 0; k < {m}; ++k) res[0][k + {m} * c] = ys[k][c - {first}];",
         "  return 1;",
         "}",
     ]
@@ -216,7 +239,7 @@ def lane_function(spec: LaneSpec) -> str:
 def lanes_unit(model: str, specs: list[LaneSpec], notice: str) -> str:
     """The lanes unit of a bundle: every spec's function, compiled only with SYMKF_LANES."""
     declarations = [line for fn in VECTOR_MATH for line in ("#pragma omp declare simd notinbranch",
-                                                             f"double {fn}({'double, double' if fn == 'pow' else 'double'});")]
+                                                             f"double {fn}({'double, double' if fn in ('pow', 'atan2') else 'double'});")]
     return "\n".join([
         f"/* {notice}", " * Sigma points propagated in SIMD lanes, for the host library only (codegen/c_backend/lanes.py):",
         " * compiled to nothing without SYMKF_LANES (the flight bundle's Makefile). */",

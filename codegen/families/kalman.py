@@ -278,14 +278,18 @@ def ukf_predict_deviations(symbols: Symbols, fns: ModelFunctions, x, P, t, dt, Q
 def ukf_update_expr(symbols: Symbols, fns: ModelFunctions, name: str, msym: dict, wrap, x, P, t):
     s = symbols.sym
     mask = msym["mask"]
-    points, weights, ok = sigma_points(x, P, s["kappa"])
-    deviations = None
+    L, weights, ok = sigma_factor(P, s["kappa"])
+    points, deviations = sigma_columns(x, L), None
     if fns.config.precision == "float":      # the offsets themselves, not (x + d_i) - x rounded
         offsets, weights, ok = sigma_offsets(P, s["kappa"])
         deviations = [ca.SX.zeros(x.shape)] + offsets[1:]
         points = [x] + [x + d for d in offsets[1:]]
-    h = measurement_function(symbols.model, name)            # inlined: the points share terms (CSE)
-    predicted = [h(t, pt, s["u"], s["p"], msym["q"]) for pt in points]
+    if deviations is None:          # one called function of the points (the host library's lanes)
+        Z = fns.h_at_points(name, sigma_columns)(t, x, ca.tril(L), s["u"], s["p"], msym["q"])
+        predicted = [Z[:, i] for i in range(len(points))]
+    else:
+        h = measurement_function(symbols.model, name)            # inlined: the points share terms (CSE)
+        predicted = [h(t, pt, s["u"], s["p"], msym["q"]) for pt in points]
     z_pred = _weighted_mean(predicted, weights, wrap)
     dz = [mask * _angle_difference(zi, z_pred, wrap) for zi in predicted]
     dx = deviations if deviations is not None else [pt - x for pt in points]

@@ -267,12 +267,12 @@ SELF_COSTS = {"wrapper": ("step", ("{m}_{f}_step_radar", "{m}_{f}_step_radar_eva
 #: Where the fused step's instructions go (rows of the parts table): exclusive counts of
 #: the functions of one ``step`` call, grouped by a test on the function's name (``m`` the model,
 #: ``f`` the filter): the propagation (f_d and F, or f_d at the sigma points, with their event
-#: dispatchers and SIMD lanes; libmvec's vector sin/cos count as libm), the measurement function (h and H; the UKF inlines h in its update kernel), the
+#: dispatchers and SIMD lanes; libmvec's vector sin/cos count as libm), the measurement function (h and H; the UKF's h at its sigma points, in lanes too), the
 #: predict and update kernels' own work, and the C math library (sincos, atan2, exp, ...).
 STEP_FUNCTIONS = {
-    "step: propagation": lambda name, m, f: (name.startswith(f"{m}_fn_") and not name.startswith(f"{m}_fn_h_")
-                                             or name.startswith(f"{m}_lanes_")),
-    "step: h and H": lambda name, m, f: name.startswith(f"{m}_fn_h_"),
+    "step: propagation": lambda name, m, f: (name.startswith((f"{m}_fn_", f"{m}_lanes_"))
+                                             and not name.startswith((f"{m}_fn_h_", f"{m}_lanes_h_"))),
+    "step: h and H": lambda name, m, f: name.startswith((f"{m}_fn_h_", f"{m}_lanes_h_")),
     "step: predict kernel": lambda name, m, f: name.startswith(f"{m}_k_{f}_predict"),
     "step: update kernel": lambda name, m, f: name.startswith(f"{m}_k_{f}_update_"),
     "step: libm": lambda name, m, f: not name.startswith(f"{m}_") and name != "main",
