@@ -201,6 +201,7 @@ def lane_function(spec: LaneSpec) -> str:
         f"double (*xs)[{pad}], double (*ys)[{pad}]) {{",
         *([f"  double {', '.join(declared)};"] if declared else []),
         "  int l;",
+        "  (void)in;       /* (a function of the point alone reads no other input) */",
         *(f"  {line}" for line in uniform),
         "#pragma omp simd",
         f"  for (l = 0; l < {pad}; ++l) {{",
