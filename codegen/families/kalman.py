@@ -63,11 +63,16 @@ class UkfOptions:
                                "CPU (libmvec's sin/cos: round-off differs; codegen/c_backend/lanes.py); the flight "
                                "bundle stays scalar")
 
+    lanes_update: bool = option(False, "with ukf_lanes, the update's h at the sigma points in lanes too (libmvec's "
+                                       "atan2, sin, cos: 18.4k instead of 23.5k instructions per launcher step; its "
+                                       "round-off moves some campaign runs by up to 1e-4 relative: off by default)")
+
     prefix: ClassVar[str] = "ukf_"
 
     @classmethod
     def of(cls, config) -> "UkfOptions":
-        return cls(bool(config.get(f"{cls.prefix}centre_free", True)), bool(config.get(f"{cls.prefix}lanes", True)))
+        return cls(*(bool(config.get(f"{cls.prefix}{f}", d)) for f, d in
+                     (("centre_free", True), ("lanes", True), ("lanes_update", False))))
 
 
 # ---------------------------------------------------------------------- process noise
