@@ -162,16 +162,16 @@ class Propagation:
             w = ca.DM.zeros(len(model.noises))
             args, names = [t, dt, *inputs.values(), u, p], ["t", "dt", *inputs, "u", "p"]
 
-            def columns(fd, pts, *rest):
-                return [ca.horzcat(*([pts[0]] if centre_free else []),
-                                   *[fd(t, dt, pt, *rest) for pt in pts[int(centre_free):]])]
+            def columns(step, pts):
+                """The points, each through ``step`` (but the first with ``centre_free``), as columns."""
+                kept = pts[:1] if centre_free else []
+                return [ca.horzcat(*kept, *[step(pt) for pt in pts[len(kept):]])]
             # the split branch (steps holding an event: 4 a flight) calls f_d point by point
             self.point_functions[tag, centre_free] = self.branches.function(
                 f"{self.prefix}_fd_{tag}", args, names,
-                lambda fd: columns(lambda t, dt, pt, *r: fd(t, dt, pt, u, p, w), points(*inputs.values())), ["X"],
-                CALLED_OPTIONS,
-                split=lambda t, dt, *rest: columns(lambda t_, dt_, pt: self.fd(t, dt, pt, rest[-2], rest[-1]),
-                                                   points(*rest[:-2])))
+                lambda fd: columns(lambda pt: fd(t, dt, pt, u, p, w), points(*inputs.values())), ["X"], CALLED_OPTIONS,
+                split=lambda t_, dt_, *rest: columns(lambda pt: self.fd(t_, dt_, pt, rest[-2], rest[-1]),
+                                                     points(*rest[:-2])))
         return self.point_functions[tag, centre_free]
 
     def fd_at_points_weighted(self, tag: str, inputs: dict[str, ca.SX], points) -> ca.Function:
