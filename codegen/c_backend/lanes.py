@@ -132,13 +132,20 @@ def specs_of(functions, config) -> tuple[LaneSpec, ...]:
             made.append(LaneSpec(f"{model.name}_fn_{name[len(model.name) + 1:]}", point, key[1], 2, 2,
                                  ((0, 0), (1, 1), (3, 4), (4, 5))))
     for function in functions.point_h_functions() if config.get("ukf_lanes_update", False) else ():
-        measurement = function.name()[len(model.name) + 3:-len("_at_sigma")]
-        h = ca.Function("h", measurement_function(model, measurement).sx_in(),
-                        measurement_function(model, measurement).call(measurement_function(model, measurement).sx_in()),
-                        {"cse": True})
+        h = measurement_function(model, function.name()[len(model.name) + 3:-len("_at_sigma")])
+        h = ca.Function("h", h.sx_in(), h.call(h.sx_in()), {"cse": True})
         made.append(LaneSpec(f"{model.name}_fn_{function.name()[len(model.name) + 1:]}", h, False, 1, 1,
                              ((0, 0), (2, 3), (3, 4), (4, 5))))
-    return tuple(made)
+    return tuple(spec for spec in made if _writable(spec.point))
+
+
+def _writable(fn: ca.Function) -> bool:
+    """Every operation of ``fn`` has a C form here (else its scalar unit runs alone: no lanes)."""
+    try:
+        point_code(fn, 0)
+    except NotImplementedError:
+        return False
+    return True
 
 
 def _literal(value: float) -> str:
@@ -160,8 +167,7 @@ def point_code(fn: ca.Function, varying: int) -> tuple[list[str], list[str], lis
     for k in range(fn.n_instructions()):
         op, args, out = fn.instruction_id(k), fn.instruction_input(k), fn.instruction_output(k)
         if op == ca.OP_OUTPUT:
-            value = names[args[0]]
-            outputs.append(f"ys[{out[1]}][l] = {value};" if is_lane[args[0]] else f"ys[{out[1]}][l] = {value};")
+            outputs.append(f"ys[{out[1]}][l] = {names[args[0]]};")
             continue
         if op == ca.OP_INPUT:
             lane_value = args[0] == varying
