@@ -86,3 +86,14 @@ def test_update_lanes_only_when_asked(launcher_compiled, scalar):
     sigma = np.sqrt(np.einsum("kii->ki", np.asarray(slow.P)))
     # measured: 3.2e-7 of a standard deviation at most in x over the flight
     assert 0 < np.max(np.abs(np.asarray(fast.x) - np.asarray(slow.x)) / sigma) < 1e-5
+
+
+def test_point_code_hoists_the_uniform_terms_and_refuses_what_it_cannot_write():
+    import casadi as ca
+    t, x = ca.SX.sym("t"), ca.SX.sym("x", 2)
+    f = ca.Function("f", [t, x], [ca.vertcat(ca.sin(x[0]) * ca.cos(t), x[1] + 2 * t)], {"cse": True})
+    uniform, lane, outputs = lanes.point_code(f, varying=1)
+    assert any("cos(" in line for line in uniform) and not any("cos(" in line for line in lane)
+    assert any("sin(" in line for line in lane) and len(outputs) == 2
+    assert lanes._writable(f)
+    assert not lanes._writable(ca.Function("g", [t, x], [ca.erfinv(x[0]) * t]))
