@@ -19,7 +19,7 @@ import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
-from .c_backend import makefile as c_makefile, stack as c_stack
+from .c_backend import lanes as c_lanes, makefile as c_makefile, stack as c_stack
 from .compiler_pool import CompilerPool, run_compiler, run_compilers
 from .errors import BuildError, CompilerNotFound
 from .manifest import sha256_bytes, sha256_file
@@ -48,9 +48,10 @@ def compiler_identity(cc: str) -> str:
 
 
 def compile_flags(config: CodegenConfig, unit: str = "") -> list[str]:
-    """Flags of a unit (:func:`unit_optimization`), in the library and in the bundle's Makefile alike."""
+    """Flags of a unit (:func:`unit_optimization`), in the library and in the bundle's Makefile alike,
+    but for the library's SIMD lanes (c_backend/lanes.py ``host_flags``: the Makefile has none)."""
     return (c_makefile.STRICT_FLAGS.split() + unit_optimization(config, unit).split() + ["-fPIC"]
-            + c_makefile.precision_flags(config))
+            + c_makefile.precision_flags(config) + c_lanes.host_flags(config, unit))
 
 
 def compiler_failure(what: str, cmd: list[str], stderr: str, directory: Path) -> BuildError:

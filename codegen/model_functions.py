@@ -147,26 +147,49 @@ class Propagation:
     prefix: str
     point_functions: dict = field(default_factory=dict, compare=False, repr=False)   # fd_at_points, increments
 
-    def fd_at_points(self, tag: str, inputs: dict[str, ca.SX], points) -> ca.Function:
+    def fd_at_points(self, tag: str, inputs: dict[str, ca.SX], points, centre_free: bool = False) -> ca.Function:
         """``<prefix>_fd_<tag>``(t, dt, *inputs, u, p) -> f_d at each of ``points(*inputs)`` (a list
         of state vectors), as the columns of one matrix: one function per event branch, called,
         not inlined. The points are formed inside, so CSE sees what they share: every term of f_d
         that depends on time only (thrust, mass, guidance) is evaluated once, not once per point,
-        and so is a term of a state component that several points leave unchanged."""
-        if tag not in self.point_functions:
+        and so is a term of a state component that several points leave unchanged.
+        ``centre_free``: the first column is the first point itself, not propagated (see
+        :meth:`fd_at_points_weighted`)."""
+        if (tag, centre_free) not in self.point_functions:
             model = self.branches.model
             t, dt = model.t, ca.SX.sym("dt")
             u, p = ca.SX.sym("u", len(model.inputs)), ca.SX.sym("p", len(model.params))
             w = ca.DM.zeros(len(model.noises))
             args, names = [t, dt, *inputs.values(), u, p], ["t", "dt", *inputs, "u", "p"]
+
+            def columns(step, pts):
+                """The points, each through ``step`` (but the first with ``centre_free``), as columns."""
+                kept = pts[:1] if centre_free else []
+                return [ca.horzcat(*kept, *[step(pt) for pt in pts[len(kept):]])]
             # the split branch (steps holding an event: 4 a flight) calls f_d point by point
-            self.point_functions[tag] = self.branches.function(
+            self.point_functions[tag, centre_free] = self.branches.function(
                 f"{self.prefix}_fd_{tag}", args, names,
-                lambda fd: [ca.horzcat(*[fd(t, dt, pt, u, p, w) for pt in points(*inputs.values())])], ["X"],
-                CALLED_OPTIONS,
-                split=lambda t, dt, *rest: [ca.horzcat(*[self.fd(t, dt, pt, rest[-2], rest[-1])
-                                                        for pt in points(*rest[:-2])])])
-        return self.point_functions[tag]
+                lambda fd: columns(lambda pt: fd(t, dt, pt, u, p, w), points(*inputs.values())), ["X"], CALLED_OPTIONS,
+                split=lambda t_, dt_, *rest: columns(lambda pt: self.fd(t_, dt_, pt, rest[-2], rest[-1]),
+                                                     points(*rest[:-2])))
+        return self.point_functions[tag, centre_free]
+
+    def fd_at_points_weighted(self, tag: str, inputs: dict[str, ca.SX], points) -> ca.Function:
+        """``<prefix>_fd_<tag>_weighted``(w0, t, dt, *inputs, u, p): :meth:`fd_at_points`, except that
+        with w0 == 0 (the first point's weight exactly zero: a UKF with kappa = 0) the first point is
+        not propagated and its column is the point itself. A caller multiplies that column by w0, so
+        it adds the same exact zeros either way: the same numbers, one point fewer to integrate. The
+        generated C picks the variant at call time (``Function.conditional``: an ``if`` around calls)."""
+        key = ("weighted", tag)
+        if key not in self.point_functions:
+            full = self.fd_at_points(tag, inputs, points)
+            free = self.fd_at_points(f"{tag}_centre_free", inputs, points, centre_free=True)
+            switch = ca.Function.conditional(f"{self.prefix}_fd_{tag}_by_weight", [free], full)
+            w0, sym = ca.MX.sym("w0"), full.mx_in()
+            self.point_functions[key] = ca.Function(
+                f"{self.prefix}_fd_{tag}_weighted", [w0, *sym], switch.call([w0 != 0, *sym]),
+                ["w0", *full.name_in()], ["X"], CALLED_OPTIONS)
+        return self.point_functions[key]
 
     def increment_columns(self, k: int) -> ca.Function:
         """``<prefix>_increment_columns<k>``(t, dt, x, D, u, p) -> Y: column i of Y is the step of
@@ -203,7 +226,7 @@ class ModelFunctions:
         main = self._propagation(default, "")
         self.fd, self.fd_inline, self.jac_fd, self.fd_and_jac = main.fd, main.fd_inline, main.jac_fd, main.fd_and_jac
         self.noise_gain = noise_gain(model) if model.noises else None
-        self.h, self.jac_h, self.h_and_jac = {}, {}, {}
+        self.h, self.jac_h, self.h_and_jac, self._point_h = {}, {}, {}, {}
         for name in model.measurements:
             h = measurement_function(model, name)
             ht, hx, hu, hp, hq = h.sx_in()
@@ -220,6 +243,27 @@ class ModelFunctions:
             self.h_and_jac[name] = both
             self.jac_h[name] = ca.Function(f"{prefix}_jac_h_{name}", mx, [ca.densify(both(*mx)[1])], hnames, ["H"],
                                            options)
+
+    def h_at_points(self, name: str, points) -> ca.Function:
+        """``<model>_h_<name>_at_sigma``(t, x, L, u, p, q) -> Z: h at each of ``points(x, L)`` (L lower
+        triangular), the columns of Z; called, not inlined, so that the host library can evaluate
+        it in SIMD lanes (c_backend/lanes.py). CSE shares the terms of components the points
+        leave unchanged, as in the kernel that inlined h before (the same operations, the same numbers)."""
+        key = f"h_{name}_at_sigma"
+        if key not in self._point_h:
+            model = self.model
+            h = measurement_function(model, name)
+            t, x, L = model.t, ca.SX.sym("x", model.nx), ca.SX.sym("L", ca.Sparsity.lower(model.nx))
+            u, p = ca.SX.sym("u", len(model.inputs)), ca.SX.sym("p", len(model.params))
+            q = ca.SX.sym("q", model.measurements[name].q.shape[0])
+            self._point_h[key] = ca.Function(f"{model.name}_{key}", [t, x, L, u, p, q],
+                                             [ca.horzcat(*[h(t, pt, u, p, q) for pt in points(x, L)])],
+                                             ["t", "x", "L", "u", "p", "q"], ["Z"], CALLED_OPTIONS)
+        return self._point_h[key]
+
+    def point_h_functions(self) -> list[ca.Function]:
+        """The functions :meth:`h_at_points` made so far."""
+        return list(self._point_h.values())
 
     def for_filter(self, family: str) -> Propagation:
         """The propagation functions of one family, per the config's ``<family>_*`` keys."""

@@ -358,6 +358,8 @@ class Bundle:
     #: How many kernels each generation step made, in order (the model's own kernels, then each
     #: filter family's); () = one part. The C of each part is generated on its own (c_backend.units).
     parts: tuple[int, ...] = ()
+    #: The scalar units the host library evaluates in SIMD lanes (c_backend/lanes.py LaneSpec).
+    lanes: tuple = ()
 
     def part_bundles(self) -> list["Bundle"]:
         """The bundle of each part's kernels (the whole bundle if it has no parts)."""
@@ -366,7 +368,7 @@ class Bundle:
         if sum(self.parts) != len(self.kernels):
             raise ValueError(f"model '{self.model_name}': parts {self.parts} do not add up to {len(self.kernels)} kernels")
         starts = [sum(self.parts[:i]) for i in range(len(self.parts))]
-        return [Bundle(self.model_name, self.kernels[a:a + n], self.config, self.description)
+        return [Bundle(self.model_name, self.kernels[a:a + n], self.config, self.description, lanes=self.lanes)
                 for a, n in zip(starts, self.parts)]
 
     def filter(self, name: str) -> FilterSpec:

@@ -14,6 +14,9 @@ def stack_usage(callgraph: str) -> dict[str, int]:
     """Worst-case stack bytes of every function in a GCC ``-fcallgraph-info=su`` file: its own
     frame plus the deepest chain of callees defined in the file (library calls count as 0).
 
+    Calls of the host library's SIMD lanes (``<model>_lanes_*``, c_backend/lanes.py) are left out:
+    the figures are the flight bundle's, which compiles the scalar code only.
+
     Raises ValueError on recursion or an unbounded dynamic frame (neither occurs in generated code).
     """
     frames, calls = {}, {}
@@ -24,6 +27,8 @@ def stack_usage(callgraph: str) -> dict[str, int]:
                 raise ValueError(f"{title}: unbounded dynamic stack frame")
             frames[title] = int(match.group(1))
     for source_name, target in _CI_EDGE.findall(callgraph):
+        if "_lanes_" in target:
+            continue
         calls.setdefault(source_name, set()).add(target)
     worst: dict[str, int] = {}
 

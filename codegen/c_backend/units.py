@@ -12,6 +12,7 @@ from ..spec import Bundle
 from .api import api_unit, hash_unit, public_functions
 from .casadi_text import CasadiCode, math_block, plain_names
 from .header import precision_lines
+from .lanes import hook, lanes_file, lanes_unit
 from .names import api_file, ascii_text, check_unit_names, generated_notice, hash_file
 from .template_util import template_text
 
@@ -23,6 +24,9 @@ def units(bundle: Bundle, content_hash: str, per_part: list[dict[str, str]] | No
     model = bundle.model_name
     out = {api_file(model): api_unit(bundle), hash_file(model): hash_unit(model, content_hash, bundle.description.get("source", "")),
            **function_units(bundle, per_part)}
+    if bundle.lanes:
+        out[lanes_file(model)] = lanes_unit(model, list(bundle.lanes),
+                                            generated_notice(model, bundle.description.get("source", "")))
     check_unit_names(model, out, public_functions(bundle))
     return out
 
@@ -67,6 +71,9 @@ def part_units(bundle: Bundle) -> dict[str, str]:
                  f" see {model}.h. */" if kernel else
                  f" * {code.signatures[number]}: called by the kernels' units (CasADi's code). */")
         text = plain_names(code.unit(number, symbols), f"{symbol}_casadi")
+        for spec in bundle.lanes:
+            if spec.symbol == symbol:
+                text = hook(text, spec)
         units[f"{symbol}.c"] = ascii_text("\n".join([
             f"/* {generated_notice(model, bundle.description.get('source', ''))}", about,
             "#include <math.h>", "", *precision_lines(bundle), template_text("real.h"), "", math_block(text), "",

@@ -36,17 +36,43 @@ inputs with status SYMKF_GATED, and they are written).
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import ClassVar
+
 import casadi as ca
 
 from symkf.models.base import Model
 from .. import linalg
 from ..discretize import measurement_function
 from ..model_functions import ModelFunctions, Symbols
-from ..spec import STATUS_DOMAIN, STATUS_NOT_PD, Arg, Family
+from ..spec import STATUS_DOMAIN, STATUS_NOT_PD, Arg, Family, option
 from .framework import (all_finite, compose_step, filter_spec, innovation, make_kernel, masked_noise, register_family,
                         update_outputs)
 from .iterated import IteratedOptions, iterated_update_expr, iterations
 from .rts import cross_covariance, smooth_kernel
+
+
+@dataclass(frozen=True)
+class UkfOptions:
+    """The UKF's options of its generated C (the same numbers either way)."""
+
+    centre_free: bool = option(True, "with kappa = 0 (centre weight exactly 0) skip propagating the centre sigma "
+                                     "point, picked at call time; the same numbers as propagating it")
+
+    lanes: bool = option(True, "the host library propagates the sigma points 4 at a time in SIMD lanes on an AVX2 "
+                               "CPU (libmvec's sin/cos: round-off differs; codegen/c_backend/lanes.py); the flight "
+                               "bundle stays scalar")
+
+    lanes_update: bool = option(False, "with ukf_lanes, the update's h at the sigma points in lanes too (libmvec's "
+                                       "atan2, sin, cos: 18.4k instead of 23.5k instructions per launcher step; its "
+                                       "round-off moves some campaign runs by up to 1e-4 relative: off by default)")
+
+    prefix: ClassVar[str] = "ukf_"
+
+    @classmethod
+    def of(cls, config) -> "UkfOptions":
+        return cls(*(bool(config.get(f"{cls.prefix}{f}", d)) for f, d in
+                     (("centre_free", True), ("lanes", True), ("lanes_update", False))))
 
 
 # ---------------------------------------------------------------------- process noise
@@ -207,10 +233,14 @@ def ukf_propagation(symbols: Symbols, fns: ModelFunctions, x, P, t, dt, Q):
     n = x.shape[0]
     L, weights, ok = sigma_factor(P, s["kappa"])
     # one call, split only at an event; L lower triangular: a point x + L_i leaves x_0..x_i-1 as
-    # they are, and the function sees it (terms of those components are shared with x's)
-    fd = fns.for_filter("ukf").fd_at_points(
-        "sigma", {"x": ca.SX.sym("x", n), "L": ca.SX.sym("L", ca.Sparsity.lower(n))}, sigma_columns)
-    moved = fd(t, dt, x, ca.tril(L), s["u"], s["p"])
+    # they are, and the function sees it (terms of those components are shared with x's); with
+    # W_0 = 0 (kappa = 0) the centre point is not propagated (its weight makes it add exact zeros)
+    inputs, propagation = {"x": ca.SX.sym("x", n), "L": ca.SX.sym("L", ca.Sparsity.lower(n))}, fns.for_filter("ukf")
+    if UkfOptions.of(fns.config).centre_free:
+        moved = propagation.fd_at_points_weighted("sigma", inputs, sigma_columns)(weights[0], t, dt, x, ca.tril(L),
+                                                                                  s["u"], s["p"])
+    else:
+        moved = propagation.fd_at_points("sigma", inputs, sigma_columns)(t, dt, x, ca.tril(L), s["u"], s["p"])
     propagated = [moved[:, i] for i in range(2 * n + 1)]
     x_pred = _weighted_mean(propagated, weights)
     moved = [pt - x_pred for pt in propagated]
@@ -253,14 +283,18 @@ def ukf_predict_deviations(symbols: Symbols, fns: ModelFunctions, x, P, t, dt, Q
 def ukf_update_expr(symbols: Symbols, fns: ModelFunctions, name: str, msym: dict, wrap, x, P, t):
     s = symbols.sym
     mask = msym["mask"]
-    points, weights, ok = sigma_points(x, P, s["kappa"])
-    deviations = None
+    L, weights, ok = sigma_factor(P, s["kappa"])
+    points, deviations = sigma_columns(x, L), None
     if fns.config.precision == "float":      # the offsets themselves, not (x + d_i) - x rounded
         offsets, weights, ok = sigma_offsets(P, s["kappa"])
         deviations = [ca.SX.zeros(x.shape)] + offsets[1:]
         points = [x] + [x + d for d in offsets[1:]]
-    h = measurement_function(symbols.model, name)            # inlined: the points share terms (CSE)
-    predicted = [h(t, pt, s["u"], s["p"], msym["q"]) for pt in points]
+    if deviations is None:          # one called function of the points (the host library's lanes)
+        Z = fns.h_at_points(name, sigma_columns)(t, x, ca.tril(L), s["u"], s["p"], msym["q"])
+        predicted = [Z[:, i] for i in range(len(points))]
+    else:
+        h = measurement_function(symbols.model, name)            # inlined: the points share terms (CSE)
+        predicted = [h(t, pt, s["u"], s["p"], msym["q"]) for pt in points]
     z_pred = _weighted_mean(predicted, weights, wrap)
     dz = [mask * _angle_difference(zi, z_pred, wrap) for zi in predicted]
     dx = deviations if deviations is not None else [pt - x for pt in points]
@@ -309,4 +343,4 @@ def ukf_kernels(model: Model, symbols: Symbols, fns: ModelFunctions) -> Family:
 
 
 register_family("ekf", ekf_kernels, options=(IteratedOptions,))
-register_family("ukf", ukf_kernels, long_compile=True)      # f_d at the sigma points
+register_family("ukf", ukf_kernels, long_compile=True, options=(UkfOptions,))      # f_d at the sigma points

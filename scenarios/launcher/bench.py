@@ -33,7 +33,9 @@ it ran (content hash, -O flags).
 ``--instructions`` counts, with callgrind, the instructions of one call of each part (predict,
 update, the fused step, a step inside the run loop, a backward step of the RTS smoother's
 ``<filter>_smooth_run`` over that run), with where a step's instructions go
-(wrapper, run loop, propagation, h and H, predict and update kernels, libm).
+(wrapper, run loop, propagation, h and H, predict and update kernels, libm), and the UKF step of
+the build without SIMD lanes (``ukf_lanes=False``: the sigma points one at a time, as the flight
+bundle computes them) in the row "scalar sigma pts".
 """
 from __future__ import annotations
 
@@ -306,11 +308,12 @@ SELF_COSTS = {"wrapper": ("step", ("{m}_{f}_step_radar", "{m}_{f}_step_radar_eva
 #: Where the fused step's instructions go (rows of the parts table): exclusive counts of
 #: the functions of one ``step`` call, grouped by a test on the function's name (``m`` the model,
 #: ``f`` the filter): the propagation (f_d and F, or f_d at the sigma points, with their event
-#: dispatchers), the measurement function (h and H; the UKF inlines h in its update kernel), the
+#: dispatchers and SIMD lanes; libmvec's vector sin/cos count as libm), the measurement function (h and H; the UKF's h at its sigma points, in lanes too), the
 #: predict and update kernels' own work, and the C math library (sincos, atan2, exp, ...).
 STEP_FUNCTIONS = {
-    "step: propagation": lambda name, m, f: name.startswith(f"{m}_fn_") and not name.startswith(f"{m}_fn_h_"),
-    "step: h and H": lambda name, m, f: name.startswith(f"{m}_fn_h_"),
+    "step: propagation": lambda name, m, f: (name.startswith((f"{m}_fn_", f"{m}_lanes_"))
+                                             and not name.startswith((f"{m}_fn_h_", f"{m}_lanes_h_"))),
+    "step: h and H": lambda name, m, f: name.startswith((f"{m}_fn_h_", f"{m}_lanes_h_")),
     "step: predict kernel": lambda name, m, f: name.startswith(f"{m}_k_{f}_predict"),
     "step: update kernel": lambda name, m, f: name.startswith(f"{m}_k_{f}_update_"),
     "step: libm": lambda name, m, f: not name.startswith(f"{m}_") and name != "main",
@@ -343,6 +346,20 @@ def c_loop_instructions(work: Workload) -> dict[str, dict]:
             parts.update(step_breakdown(counts["step"][1], "launcher", family))
             out[family] = {"instructions_per_step": parts["step"], "instructions_by_part": parts}
     return out
+
+
+#: The build of the "scalar" row of ``--instructions``: the UKF's sigma points one at a time
+#: (scalar libm), as the flight bundle computes them.
+SCALAR_BUILD = {"ukf_lanes": False}
+
+
+def scalar_step_instructions(work: Workload) -> dict[str, float]:
+    """Instructions per fused UKF step of :data:`SCALAR_BUILD` (the EKF's step has no lanes)."""
+    if not shutil.which("valgrind"):
+        return {}
+    with tempfile.TemporaryDirectory() as tmp:
+        exe = _compile_c_loop(build_model("launcher", **SCALAR_BUILD).directory, Path(tmp))
+        return {"ukf": _instructions_per_step(exe, "ukf", "step", _c_loop_input(work), Path(tmp))[0]}
 
 
 def _c_loop_input(work: Workload) -> str:
@@ -399,6 +416,8 @@ def measure(steps: int, reference_steps: int, campaign: bool, instructions: bool
     report = {"rows": rows, "paper_ms_per_step": L.PAPER_MS_PER_STEP, "ratios": ratios(rows),
               "ratios by round": spread, "steps": steps, "reference_steps": reference_steps, "rounds": ROUNDS,
               "load_average": {"before": load_before, "after": timing.load_average()}}
+    if instructions:
+        report["scalar_instructions_per_step"] = scalar_step_instructions(work)
     if campaign:
         report.update(time_campaign(scheduler))
     return report
@@ -500,6 +519,9 @@ def human_table(report: dict) -> str:
     counts = {r["filter"]: r["instructions_per_step"] for r in report["rows"] if "instructions_per_step" in r}
     if counts:
         lines.append(f"{'c_loop instr.':<18}{counts['ekf']:>14.0f}{counts['ukf']:>14.0f}{counts['ukf'] / counts['ekf']:>10.2f}")
+        scalar = report.get("scalar_instructions_per_step", {}).get("ukf")
+        if scalar:          # the same step with the sigma points one at a time (the flight bundle's way)
+            lines.append(f"{'  scalar sigma pts':<18}{counts['ekf']:>14.0f}{scalar:>14.0f}{scalar / counts['ekf']:>10.2f}")
     for family in FILTERS:
         lines.append(f"{family}: " + ", ".join(f"{k} = {v:.1f}" for k, v in report["ratios"][family].items()))
     for name, by_round in report.get("ratios by round", {}).items():

@@ -44,8 +44,9 @@ def test_only_event_models_branch(launcher_functions):
     model, fns = launcher_functions
     assert len(EventBranches(model, 1).branches) == 2
     assert len(EventBranches(model, 1, split_events=False).branches) == 1
-    sigma = [f for name, f in fns.for_filter("ukf").point_functions.items() if name == "sigma"]
-    assert len(sigma) == 1, "the UKF family propagates its sigma points through fd_at_points('sigma', ...)"
+    sigma = [f for name, f in fns.for_filter("ukf").point_functions.items()
+             if name in (("sigma", False), ("sigma_centre_free", True))]
+    assert len(sigma) == 2, "the UKF family propagates its sigma points through fd_at_points('sigma', ...)"
     for function in (fns.fd, fns.fd_and_jac, *sigma):
         calls = [function.instruction_MX(k).which_function() for k in range(function.n_instructions())
                  if function.instruction_id(k) == ca.OP_CALL]
@@ -65,12 +66,20 @@ def test_fd_and_jacobian_equal_the_branch_free_split(launcher_functions):
         np.testing.assert_array_equal(np.array(fns.jac_fd(t, dt, x, [], p)), F)
 
 
+@pytest.fixture(scope="module")
+def scalar_sigma_points():
+    """The library with the UKF's sigma points one at a time (no SIMD lanes, whose libmvec round-off
+    tests/codegen/test_ukf_lanes.py checks): the scalar code that was recorded."""
+    from symkf.runtime import load
+    return load("launcher", backend="compiled", ukf_lanes=False)
+
+
 @pytest.mark.parametrize("run", RUNS)
-def test_compiled_filters_equal_main_before_branching(launcher_compiled, run):
+def test_compiled_filters_equal_main_before_branching(launcher_compiled, scalar_sigma_points, run):
     """Whole runs through an event, compiled: x and P equal the recorded runs of the branch-free
     generator to 1e-12 relative (recorded ungated, from the record's first time)."""
     family, measurement = run.split("_", 1)
-    f = launcher_compiled.filter(family, REFERENCE[run + "_x0"], REFERENCE[run + "_P0"], TUNING["Q"], gate="none",
+    f = (scalar_sigma_points if family == "ukf" else launcher_compiled).filter(family, REFERENCE[run + "_x0"], REFERENCE[run + "_P0"], TUNING["Q"], gate="none",
                                  t0=REFERENCE[run + "_times"][0], **({"kappa": 0.0} if family == "ukf" else {}))
     result = f.run(REFERENCE[run + "_times"], REFERENCE[run + "_z"], measurement=measurement, q=REFERENCE[run + "_q"])
     assert np.all(np.asarray(result.status) == 0)
