@@ -26,7 +26,9 @@ double build.
   update stops the loop (SymkfError) and is reported as such.
 - square-root forms (:mod:`symkf.scenarios.toolchain.square_root_float`): EKF, UKF, SR-EKF and
   SR-UKF on the launcher's 20 Hz small-error case (``--square-root-runs`` runs) in double, float
-  with the declared scaling and float without it; and, with ``--model FILE``, on a user model file
+  with the declared scaling and float without it; the MEKF and SR-MEKF on attitude scenario I
+  (``--attitude-runs``, ``--attitude-duration``) and the CD-EKF and SR-CD-EKF in the geo closed
+  loops (``--geo-duration``), double and float; and, with ``--model FILE``, on a user model file
   with a truth simulation (e.g. tests/models/leo_od_model.py), double and float.
 """
 from __future__ import annotations
@@ -179,6 +181,9 @@ def run(args) -> int:
     if not args.skip_square_root:
         from symkf.scenarios.toolchain import square_root_float
         result["launcher_square_root"] = square_root_float.launcher(args.square_root_runs)
+        result["attitude_square_root"] = square_root_float.attitude(args.attitude_runs, args.attitude_duration)
+        for label, rows in square_root_float.geo(args.geo_duration).items():
+            result[f"geo_square_root_{label}"] = rows
         if args.model:
             result["model_square_root"] = square_root_float.user_model(args.model)
     emit(result, args.out, args.json, _print)
@@ -210,7 +215,9 @@ def _print(result: dict) -> None:
 
 
 #: (section, metric, unit) of the square-root rows; every build beside double.
-_SQUARE_ROOT_METRICS = {"launcher_square_root": ("r_rms_m", "m"), "model_square_root": ("position_rms_m", "m")}
+_SQUARE_ROOT_METRICS = {"launcher_square_root": ("r_rms_m", "m"), "attitude_square_root": ("attitude_rms_deg", "deg"),
+                        **{f"geo_square_root_{label}": ("attitude_estimation_rms_deg", "deg") for label in GEO_RUNS},
+                        "model_square_root": ("position_rms_m", "m")}
 
 
 def _print_square_root(result: dict) -> None:
