@@ -36,10 +36,10 @@ from ..discretize import CALLED_OPTIONS, continuous_dynamics
 from ..model_functions import ModelFunctions, Symbols
 from ..spec import Family
 from .cd_ekf import from_upper_triangle, upper_triangle
-from .framework import compose_step, filter_spec, make_kernel, register_family, update_outputs
-from .kalman import UPDATE_INPUTS, predict_status
-from .srekf import srekf_update_expr
-from .srukf import factor_arg, factor_inputs_finite
+from .framework import filter_spec, make_kernel, register_family
+from .kalman import predict_status
+from .srekf import array_update_kernels
+from .srukf import factor_arg
 
 FAMILY = "srcdekf"
 
@@ -104,14 +104,7 @@ def srcdekf_kernels(model: Model, symbols: Symbols, fns: ModelFunctions) -> Fami
                            f"({substeps} sub-step(s)), L = qr[Phi L, chol(Q_d)] per sub-step.",
                            symbols, {}, factor, ["t", "dt", "x", "P", "u", "p", "Q"],
                            [("x", x_pred), ("P", L_pred), ("status", predict_status(ok))])]
-    for name, meas in model.measurements.items():
-        msym, marg = symbols.measurement(name)
-        upd = srekf_update_expr(symbols, fns, name, msym, meas.wrap, s["x"], L, s["t"])
-        kernels.append(make_kernel(
-            f"{FAMILY}_update_{name}", f"Square-root continuous-discrete EKF update with '{name}' at time t (array "
-            "form, masked, gated).", symbols, msym, {**marg, **factor}, UPDATE_INPUTS,
-            update_outputs(upd, s["x"], L, msym["gate"], msym["mask"], factor_inputs_finite(symbols, s["P"]))))
-        kernels.append(compose_step(f"{FAMILY}_step_{name}", kernels[0], kernels[-1]))
+    kernels += array_update_kernels(FAMILY, "Square-root continuous-discrete EKF", model, symbols, fns, kernels[0])
     return Family(kernels, [filter_spec(FAMILY, FAMILY, kernels, model.measurements, covariance="cholesky")])
 
 

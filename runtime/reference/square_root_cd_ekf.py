@@ -11,20 +11,11 @@ from scipy.linalg import solve_triangular
 from symkf.runtime.covariance_form import psd_factor
 from .cd_ekf import NumpyCDEKF
 from .common import wrap_angle
-from .square_root import triangularize
+from .square_root import CarriesFactor, triangularize
 
 
-class NumpySquareRootCDEKF(NumpyCDEKF):
+class NumpySquareRootCDEKF(CarriesFactor, NumpyCDEKF):
     """The square-root CD-EKF in NumPy; ``L`` carried, ``P`` = L L^T read."""
-
-    @property
-    def P(self) -> np.ndarray:
-        P = self.L @ self.L.T
-        return 0.5 * (P + P.T)
-
-    @P.setter
-    def P(self, value) -> None:
-        self.L = psd_factor(value)
 
     def _rates(self, t, x, Phi, Qd):
         a = np.asarray(self.functions["a"](t, x, self.u, self.p)).ravel()

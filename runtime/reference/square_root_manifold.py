@@ -18,10 +18,10 @@ from scipy.linalg import solve_triangular
 from symkf.runtime.covariance_form import psd_factor
 from .kalman import ReferenceFilter
 from .manifold import ManifoldReference
-from .square_root import triangularize
+from .square_root import CarriesFactor, triangularize
 
 
-class SquareRootManifoldReference(ManifoldReference):
+class SquareRootManifoldReference(CarriesFactor, ManifoldReference):
     """The square-root MEKF ("srmekf") in NumPy; ``L`` carried, ``P`` = L L^T read."""
 
     def __init__(self, model, family: str, x0, P0, Q, R: dict | None = None, p=None, side: str = "right",
@@ -30,15 +30,6 @@ class SquareRootManifoldReference(ManifoldReference):
             raise ValueError("family: expected 'srmekf'")
         super().__init__(model, "mekf", x0, P0, Q, R, p, side=side, transition=transition)
         self.family = family
-
-    @property
-    def P(self) -> np.ndarray:
-        P = self.L @ self.L.T
-        return 0.5 * (P + P.T)
-
-    @P.setter
-    def P(self, value) -> None:
-        self.L = psd_factor(value)
 
     def predict(self, t: float, dt: float, u=None) -> None:
         if u is not None:

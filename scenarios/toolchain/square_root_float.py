@@ -163,29 +163,37 @@ def attitude(runs: int, duration: float, seed: int = 2008) -> dict:
     return out
 
 
-def geo(duration: float) -> dict:
+def geo(duration: float, cases: dict) -> dict:
     """{case: {filter: {build: {attitude_estimation_rms_deg, refused_steps, ...}}}}: the closed loops
-    of ``float_bench.GEO_RUNS`` with each filter from each build (truth, sensors, control in double)."""
-    from symkf.scenarios.geo.closed_loop import ClosedLoop, LoopSettings
-    from symkf.scenarios.toolchain.float_bench import GEO_RUNS
+    ``cases`` ({label: LoopSettings options}, e.g. ``float_bench.GEO_RUNS``) with each filter from
+    each build (truth, sensors, control in double)."""
     double = load("geo_satellite")
     builds = {label: load(geo_with_square_root(), **overrides) for label, overrides in PRECISION_BUILDS}
     out: dict = {}
-    for case, options in GEO_RUNS.items():
+    for case, options in cases.items():
         for family in GEO_FILTERS:
             for label, compiled in builds.items():
-                loop = ClosedLoop(LoopSettings(duration, "ekf", bias=True, noise=True, **options), double)
-                tuning = loop.tuning
-                loop.filter = compiled.filter(family, np.zeros(17), tuning["P0"], tuning["Q"], R=tuning["R"],
-                                              gate="none")
-                rows = out.setdefault(case, {}).setdefault(family, {})
-                try:
-                    result = loop.run()
-                except SymkfError as exc:
-                    rows[label] = {"refused": str(exc), "refused_steps": 1}
-                    continue
-                half = len(result.t) // 2
-                estimation = np.degrees(result.estimation_error("angle")[half:])
-                rows[label] = {"attitude_estimation_rms_deg": float(np.sqrt(np.mean(estimation ** 2))),
-                               "refused_steps": 0, "ticks": len(result.t), "duration_s": duration}
+                out.setdefault(case, {}).setdefault(family, {})[label] = geo_loop(double, compiled, family, duration,
+                                                                                   options)
     return out
+
+
+def geo_loop(double, compiled, family: str, duration: float, options: dict) -> dict:
+    """One geo closed loop (truth, sensors, control from ``double``) with filter ``family`` of
+    ``compiled``: RMS of the attitude estimation error, of the true attitude and of the bias
+    estimation error over the second half, or ``refused`` (a refused update stops the loop)."""
+    from symkf.scenarios.geo.closed_loop import TICK, ClosedLoop, LoopSettings
+    loop = ClosedLoop(LoopSettings(duration, "ekf", bias=True, noise=True, **options), double)
+    tuning = loop.tuning
+    loop.filter = compiled.filter(family, np.zeros(17), tuning["P0"], tuning["Q"], R=tuning["R"], gate="none")
+    try:
+        result = loop.run()
+    except SymkfError as exc:
+        return {"refused": str(exc), "refused_steps": 1}
+    half = len(result.t) // 2
+    estimation = np.degrees(result.estimation_error("angle")[half:])
+    return {"attitude_estimation_rms_deg": float(np.sqrt(np.mean(estimation ** 2))),
+            "attitude_rms_deg": float(np.sqrt(np.mean(result.attitude_deg[half:] ** 2))),
+            "bias_estimation_rms_rad_s": float(np.sqrt(np.mean(result.estimation_error("bias")[half:] ** 2))),
+            "refused_steps": 0, "ticks": len(result.t), "duration_s": duration,
+            "completed": bool(len(result.t) == len(np.arange(0.0, duration + 1e-9, TICK)))}
