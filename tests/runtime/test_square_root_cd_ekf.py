@@ -139,3 +139,15 @@ def test_factor_is_lower_triangular_and_bad_noise_refused(case):
         f.Q = -case["Q"]
     np.testing.assert_array_equal(f.x, x)
     np.testing.assert_array_equal(f.P, P)
+
+
+def test_copy_is_a_filter_of_its_own(case):
+    f = make(case, "srcdekf")
+    for k, entry in enumerate(case["record"][:3]):
+        step(f, k, entry)
+    clone = f.copy()
+    before = (f.x.copy(), f.factor.copy())
+    step(clone, 3, case["record"][3])
+    assert np.array_equal(f.x, before[0]) and np.array_equal(f.factor, before[1])
+    step(f, 3, case["record"][3])
+    assert np.array_equal(f.x, clone.x) and np.array_equal(f.factor, clone.factor)

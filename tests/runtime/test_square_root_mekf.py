@@ -167,3 +167,16 @@ def test_factor_is_lower_triangular_and_gate_refuses(cases):
     assert not np.array_equal(gated.x, x)              # predicted, not updated
     with pytest.raises(ValueError, match="positive semi-definite"):
         Filter(case["compiled"], "srmekf", f.x, -P, case["Q"], R=case["R"], t0=f.t)
+
+
+def test_copy_is_a_filter_of_its_own(cases):
+    case = cases["marg"]
+    f = make(case, "srmekf")
+    for r in case["record"][:3]:
+        step(f, case, r, t="filter")
+    clone = f.copy()
+    before = (f.x.copy(), f.factor.copy())
+    step(clone, case, case["record"][3], t="filter")
+    assert np.array_equal(f.x, before[0]) and np.array_equal(f.factor, before[1])
+    step(f, case, case["record"][3], t="filter")
+    assert np.array_equal(f.x, clone.x) and np.array_equal(f.factor, clone.factor)
