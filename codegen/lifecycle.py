@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from symkf.models import Model, get_model
+from . import float_check
 from .c_backend import units as c_units
 from .build_folders import current, folder_name, keyed_name, point_to, private_root, prune, published
 from .compilation import UnitCompiler, compile_bundle, compiler, unit_optimization
@@ -114,6 +115,7 @@ def build_validated(model: Model, force: bool = False, start: float | None = Non
     config = config_for(model, **overrides)
     unit_optimization(config)                                   # a bad per-unit option: refused before any work
     check_families(model)                                       # also for a cached build (not regenerated)
+    float_check.warn_at_build(model, config)                    # float: what will not resolve, said now
     root = private_root()
     folder = folder_name(model, config)
     try:

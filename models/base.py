@@ -94,8 +94,7 @@ class Model:
     """A vehicle and its sensors, written once as CasADi SX expressions.
 
     Build one with ``Model(name, description, paper)``, declare symbols with :meth:`state`, :meth:`input`,
-    :meth:`param` and :meth:`noise`, then call :meth:`set_dynamics` and :meth:`measurement`.
-    """
+    :meth:`param` and :meth:`noise`, then call :meth:`set_dynamics` and :meth:`measurement`."""
 
     name: str
     description: str
@@ -135,6 +134,7 @@ class Model:
     #: builds work on (:meth:`state`; codegen/scaling.py). Default 1 and 0.
     state_scale: list[float] = field(default_factory=list)
     state_offset: list[float] = field(default_factory=list)
+    state_ranges: dict = field(default_factory=dict)  #: state -> (low, high, smallest 1-sigma): models/float_range.py
     #: True for the model codegen/scaling.py derives: its states are the scaled x~.
     scaled_state: bool = False
     discrete_step: tuple | None = None      #: the exact discrete step (:meth:`set_discrete_step`), if any

@@ -11,6 +11,9 @@ scenarios/toolchain/square_root_float.py). What helps: an offset (``Model.state(
 e.g. the Earth's radius, so the carried number is an altitude), or a double build. A scale that is
 a power of two changes nothing (the relative spacing of float is the same at every magnitude).
 
+A float build already says at build time what it will not resolve for the states whose range
+the model declares (models/float_range.py, codegen/float_check.py); this check needs no declaration.
+
 :func:`check` returns the findings; :func:`warn_unresolved` issues one
 :class:`FloatResolutionWarning` naming the states, the numbers and the remedy.
 """
@@ -21,14 +24,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-#: A state whose float spacing exceeds this fraction of its 1-sigma is reported. Measured (one
-#: run, 20 Hz small error): with the launcher's declared offsets the largest ratio is 0.37 (V) and
-#: float is within 1.3x of double; without them r reaches 1.5 and theta 3.8, and float is 80x off.
-SPACING_FRACTION = 1.0
-
-
-class FloatResolutionWarning(UserWarning):
-    """A single-precision filter cannot resolve a state at the size of its own uncertainty."""
+# the warning and its threshold are the build check's too (codegen/float_check.py)
+from symkf.codegen.float_check import SPACING_FRACTION, FloatResolutionWarning
 
 
 @dataclass(frozen=True)

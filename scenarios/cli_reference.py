@@ -68,6 +68,13 @@ FAMILY_GUIDE: dict[str, FamilyGuide] = {
         "n states in the model's units", "n x n covariance of x (each state's unit squared)",
         "n x n power spectral density of an additive noise on every state (G = I)",
         "RK4 of x and the upper triangle of P, sparse A; update O(n^2 m)"),
+    "srcdekf": FamilyGuide(
+        "srcdekf", "square-root continuous-discrete EKF: x, Phi' = A Phi and Q_d' = A Q_d + Q_d A^T + Q by RK4, "
+        "then L = qr[Phi L, chol(Q_d)] per sub-step; the array-form update; the CD-EKF's numbers; any model",
+        "n states in the model's units", "n x n covariance of x, given and read as P (Filter.factor reads L)",
+        "n x n power spectral density of an additive noise on every state (G = I)",
+        "RK4 of x, Phi (n x n) and Q_d, an n x n Cholesky and a QR of an n x 2n array per sub-step; "
+        "update a QR of an (n + m)-row array"),
     "mekf": FamilyGuide(
         "mekf", "multiplicative (error-state) EKF for a model with quaternion_state(): F and H derived "
         "through the chart, multiplicative reset after each update",
@@ -76,6 +83,12 @@ FAMILY_GUIDE: dict[str, FamilyGuide] = {
         "model's noise() (manifold_noise='held': held over the step, paper 000 eq (29))",
         "one f_d with its Jacobian through the chart, one update (or m scalar updates: "
         "manifold_update='sequential')"),
+    "srmekf": FamilyGuide(
+        "srmekf", "square-root multiplicative EKF: the MEKF carrying the lower Cholesky factor of the error "
+        "covariance, predicted by a QR of [F L, sqrt(Q_d)], updated by triangularising the pre-array, then the "
+        "multiplicative reset; the MEKF's numbers",
+        _QUATERNION_X0, _ERROR_P0 + "; given and read as P (Filter.factor reads L)", "as mekf",
+        "one f_d with its Jacobian through the chart, two QR factorisations of (n_error + m)-row arrays"),
     "mukf": FamilyGuide(
         "mukf", "manifold UKF for a model with quaternion_state(): sigma points through the retraction, "
         "quaternion mean by the eigenvector method, additive noise",

@@ -328,12 +328,13 @@ def test_c_refuses_what_python_promises(compiled, case):
     f.update(a["z"], measurement=case.measurement, q=a["q"])
     x, P = f.x.copy(), f.P.copy()
     update = f.kernel_call("update", case.measurement)
-    buffer = f.kernel_buffer("P")
+    buffer = f.kernel_buffer("P")          # P, or a square-root filter's factor L
+    kept = buffer[0, 0]
     buffer[0, 0] = -abs(buffer[0, 0])
     assert update() == STATUS_NOT_PD
     buffer[0, 0] = np.nan
     assert update() == STATUS_NONFINITE
-    buffer[0, 0] = P[0, 0]
+    buffer[0, 0] = kept
     assert np.array_equal(f.x, x) and np.array_equal(f.P, P)
 
 

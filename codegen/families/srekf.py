@@ -61,15 +61,27 @@ def srekf_kernels(model: Model, symbols: Symbols, fns: ModelFunctions) -> Family
     kernels = [make_kernel("srekf_predict", _predict_doc(model, "Square-root EKF", "L = qr[F L, sqrt(Q_d)]"),
                            symbols, qsym, {**qarg, **factor}, ["t", "dt", "x", "P", "u", "p", "Q"],
                            [("x", x_pred), ("P", L_pred), ("status", predict_status(ok))])]
+    kernels += array_update_kernels("srekf", "Square-root EKF", model, symbols, fns, kernels[0])
+    return Family(kernels, [filter_spec("srekf", "srekf", kernels, model.measurements, covariance="cholesky")])
+
+
+def array_update_kernels(family: str, title: str, model: Model, symbols: Symbols, fns: ModelFunctions,
+                         predict) -> list:
+    """``<family>_update_<m>`` (the array-form update of :func:`srekf_update_expr`) and
+    ``<family>_step_<m>`` (``predict`` then that update) for every measurement m: the updates of
+    every square-root family whose state is ordinary (srekf, srcdekf)."""
+    s = symbols.sym
+    L, factor = ca.tril(s["P"]), {"P": factor_arg(model.nx)}
+    kernels = []
     for name, meas in model.measurements.items():
         msym, marg = symbols.measurement(name)
         upd = srekf_update_expr(symbols, fns, name, msym, meas.wrap, s["x"], L, s["t"])
-        kernels.append(make_kernel(
-            f"srekf_update_{name}", f"Square-root EKF update with measurement '{name}' at time t (array form, "
-            "masked, gated).", symbols, msym, {**marg, **factor}, UPDATE_INPUTS,
-            update_outputs(upd, s["x"], L, msym["gate"], msym["mask"], factor_inputs_finite(symbols, s["P"]))))
-        kernels.append(compose_step(f"srekf_step_{name}", kernels[0], kernels[-1]))
-    return Family(kernels, [filter_spec("srekf", "srekf", kernels, model.measurements, covariance="cholesky")])
+        update = make_kernel(
+            f"{family}_update_{name}", f"{title} update with measurement '{name}' at time t (array form, masked, "
+            "gated).", symbols, msym, {**marg, **factor}, UPDATE_INPUTS,
+            update_outputs(upd, s["x"], L, msym["gate"], msym["mask"], factor_inputs_finite(symbols, s["P"])))
+        kernels += [update, compose_step(f"{family}_step_{name}", predict, update)]
+    return kernels
 
 
 register_family("srekf", srekf_kernels)

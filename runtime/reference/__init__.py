@@ -6,6 +6,8 @@ column). One module per family, each with the compiled filter's shape (``x``, ``
 - :mod:`.cd_ekf`: :class:`NumpyCDEKF`, the continuous-discrete EKF;
 - :mod:`.manifold`: :class:`ManifoldReference`, the multiplicative EKF and the manifold UKF;
 - :mod:`.square_root`: :class:`SquareRootReference`, the square-root UKF and EKF (factor carried);
+- :mod:`.square_root_cd_ekf`: :class:`NumpySquareRootCDEKF`, the square-root continuous-discrete EKF;
+- :mod:`.square_root_manifold`: :class:`SquareRootManifoldReference`, the square-root MEKF;
 - :mod:`.gradient_descent`: :class:`ReferenceGradientDescent`, the gradient-descent orientation filter.
 
 :func:`for_family` finds the reference of a family by its name. The model is evaluated through
@@ -20,11 +22,14 @@ from .gradient_descent import ReferenceGradientDescent
 from .kalman import ReferenceFilter
 from .manifold import ManifoldReference
 from .square_root import SquareRootReference
+from .square_root_cd_ekf import NumpySquareRootCDEKF
+from .square_root_manifold import SquareRootManifoldReference
 
 #: The NumPy reference of each generated family.
 REFERENCE_OF_FAMILY = {"ekf": ReferenceFilter, "ukf": ReferenceFilter, "cd_ekf": NumpyCDEKF,
                        "mekf": ManifoldReference, "mukf": ManifoldReference, "gradient_descent": ReferenceGradientDescent,
-                       "srukf": SquareRootReference, "srekf": SquareRootReference}
+                       "srukf": SquareRootReference, "srekf": SquareRootReference,
+                       "srmekf": SquareRootManifoldReference, "srcdekf": NumpySquareRootCDEKF}
 
 
 def for_family(family: str):
@@ -36,4 +41,4 @@ def for_family(family: str):
                        f"{', '.join(sorted(REFERENCE_OF_FAMILY))}") from None
 
 
-__all__ = ["ManifoldReference", "NumpyCDEKF", "ReferenceFilter", "ReferenceGradientDescent", "SquareRootReference", "for_family", "wrap_angle"]
+__all__ = ["ManifoldReference", "NumpyCDEKF", "NumpySquareRootCDEKF", "ReferenceFilter", "ReferenceGradientDescent", "SquareRootManifoldReference", "SquareRootReference", "for_family", "wrap_angle"]

@@ -58,10 +58,13 @@ class ManifoldReference:
     ``side="left"``: the reference-frame error of ``manifold_side="left"``, Exp(δθ) ⊗ q and
     Log(q ⊗ q_ref⁻¹). ``transition``: the MEKF's F, "step" (through f_d) or "series"
     (I + A dt + (A dt)²/2 of the error dynamics, :meth:`error_rate_matrix`); default the model's
-    ``manifold_transition`` (``Model.codegen_defaults``), as the compiled filter."""
+    ``manifold_transition`` (``Model.codegen_defaults``), as the compiled filter. ``iterations``,
+    ``iteration_tolerance``: the MEKF's iterated update (codegen options ``mekf_iterations``,
+    ``mekf_iteration_tolerance``; default the model's, else 1 and 0), :meth:`iterated_correction`."""
 
     def __init__(self, model, family: str, x0, P0, Q, R: dict | None = None, p=None, kappa: float = 0.0,
-                 side: str = "right", transition: str | None = None):
+                 side: str = "right", transition: str | None = None, iterations: int | None = None,
+                 iteration_tolerance: float | None = None):
         if family not in ("mekf", "mukf"):
             raise ValueError("family: expected 'mekf' or 'mukf'")
         if side not in ("right", "left"):
@@ -71,6 +74,10 @@ class ManifoldReference:
         if transition not in ("step", "series"):
             raise ValueError("transition: expected 'step' or 'series'")
         self.side, self.transition = side, transition
+        defaults = model.codegen_defaults
+        self.iterations = int(defaults.get("mekf_iterations", 1) if iterations is None else iterations)
+        self.iteration_tolerance = float(defaults.get("mekf_iteration_tolerance", 0.0) if iteration_tolerance is None
+                                         else iteration_tolerance)
         self.functions = ModelFunctions(model, make_config(model))
         self._f, self._jac_f = manifold_family.continuous_functions(model)
         self.family, self.kappa = family, float(kappa)
@@ -197,14 +204,10 @@ class ManifoldReference:
         R = ReferenceFilter.masked_noise(self.R[name], mask)
         wrap = self.wrap[name]
         if self.family == "mekf":
-            z_pred = self._h(name, t, self.x, q)
-            H = np.array(self.functions.jac_h[name](t, self.x, self.u, self.p, q)) @ self.retract_jacobian(self.x)
-            H = mask[:, None] * H
-            y = ReferenceFilter.innovation(z, z_pred, mask, wrap)
-            S = _sym(H @ self.P @ H.T + R)
-            K = cho_solve(cho_factor(S, lower=True), H @ self.P).T
-            self.x = self.retract(self.x, K @ y)
-            self.P = _sym(self.P - K @ S @ K.T)
+            delta, P, y, S = self._linearised(z, name, t, q, mask, R, self.x, np.zeros(self.ne))
+            if self.iterations > 1:
+                delta, P = self.iterated_correction(z, name, t, q, mask, R, delta, P)
+            self.x, self.P = self.retract(self.x, delta), P
         else:
             offsets, weights = self._sigma_offsets()
             predicted = [self._h(name, t, self.retract(self.x, d), q) for d in offsets]
@@ -218,6 +221,27 @@ class ManifoldReference:
             self.x = self.retract(self.x, K @ y)
             self.P = _sym(self.P - K @ S @ K.T)
         self.y, self.S = y, S
+
+    def _linearised(self, z, name, t, q, mask, R, x_i, delta):
+        """One Gauss-Newton step at x_i = x (+) delta: K (y_i + H_i delta), P - K S K^T, y_i, S_i."""
+        H = mask[:, None] * (np.array(self.functions.jac_h[name](t, x_i, self.u, self.p, q)) @ self.retract_jacobian(x_i))
+        y = ReferenceFilter.innovation(z, self._h(name, t, x_i, q), mask, self.wrap[name])
+        S = _sym(H @ self.P @ H.T + R)
+        K = cho_solve(cho_factor(S, lower=True), H @ self.P).T
+        return K @ (y + H @ delta), _sym(self.P - K @ S @ K.T), y, S
+
+    def iterated_correction(self, z, name, t, q, mask, R, delta, P):
+        """The MEKF's Gauss-Newton iterations (``mekf.iterated_correction``): relinearised at
+        x (+) delta_i until delta moves by no more than the tolerance in prior sigmas."""
+        diagonal = np.diag(self.P)
+        sigma = np.sqrt(np.where(diagonal > 0, diagonal, 1.0))
+        previous = np.zeros(self.ne)
+        for _ in range(self.iterations - 1):
+            if not np.any(np.abs(delta - previous) > self.iteration_tolerance * sigma):
+                break
+            previous = delta
+            delta, P, _, _ = self._linearised(z, name, t, q, mask, R, self.retract(self.x, delta), delta)
+        return delta, P
 
     def step(self, t: float, dt: float, z, name: str, q=(), mask=None, u=None) -> None:
         self.predict(t, dt, u)

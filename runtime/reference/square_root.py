@@ -64,7 +64,21 @@ def weighted_factor(weights, deviations, extra: np.ndarray) -> np.ndarray:
     return L
 
 
-class SquareRootReference(ReferenceFilter):
+class CarriesFactor:
+    """What every square-root reference shares: ``L`` carried; ``P`` reads L L^T (symmetrised) and
+    setting ``P`` stores its factor (:func:`~symkf.runtime.covariance_form.psd_factor`)."""
+
+    @property
+    def P(self) -> np.ndarray:
+        P = self.L @ self.L.T
+        return 0.5 * (P + P.T)
+
+    @P.setter
+    def P(self, value) -> None:
+        self.L = psd_factor(value)
+
+
+class SquareRootReference(CarriesFactor, ReferenceFilter):
     """SR-UKF ("srukf") or SR-EKF ("srekf") in NumPy; ``L`` carried, ``P`` = L L^T read."""
 
     FAMILIES = ("srukf", "srekf")
@@ -75,16 +89,7 @@ class SquareRootReference(ReferenceFilter):
             raise ValueError(f"family: expected one of {self.FAMILIES}")
         super().__init__(model_name, "ekf", x0, P0, Q, R, p, kappa, **overrides)
         self.family = family
-        self.propagation = self.functions.for_filter(family)     # P0 was factored by the setter below
-
-    @property
-    def P(self) -> np.ndarray:
-        P = self.L @ self.L.T
-        return 0.5 * (P + P.T)
-
-    @P.setter
-    def P(self, value) -> None:
-        self.L = psd_factor(value)
+        self.propagation = self.functions.for_filter(family)     # P0 was factored by CarriesFactor
 
     # ---------------------------------------------------------------- noise
     def noise_factor(self, t: float, dt: float) -> np.ndarray:

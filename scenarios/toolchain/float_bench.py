@@ -26,7 +26,9 @@ double build.
   update stops the loop (SymkfError) and is reported as such.
 - square-root forms (:mod:`symkf.scenarios.toolchain.square_root_float`): EKF, UKF, SR-EKF and
   SR-UKF on the launcher's 20 Hz small-error case (``--square-root-runs`` runs) in double, float
-  with the declared scaling and float without it; and, with ``--model FILE``, on a user model file
+  with the declared scaling and float without it; the MEKF and SR-MEKF on attitude scenario I
+  (``--attitude-runs``, ``--attitude-duration``) and the CD-EKF and SR-CD-EKF in the geo closed
+  loops (``--geo-duration``), double and float (skipped with ``--skip-attitude``, ``--skip-geo``); and, with ``--model FILE``, on a user model file
   with a truth simulation (e.g. tests/models/leo_od_model.py), double and float.
 """
 from __future__ import annotations
@@ -136,31 +138,13 @@ GEO_RUNS = {"case3_bias_noise": {}, "case4_fail_AC": {"failed_gyros": ("A", "C")
 
 def geo(duration: float) -> dict:
     """The geo closed loops with the EKF from each build (truth, sensors and control in double)."""
-    from symkf.runtime import SymkfError, load
-    from symkf.scenarios.geo.closed_loop import TICK, ClosedLoop, LoopSettings
+    from symkf.runtime import load
+    from symkf.scenarios.toolchain.square_root_float import geo_loop
     double = load("geo_satellite")
     builds = {"double": double, "float": load("geo_satellite", precision="float")}
-    out = {}
-    for label, options in GEO_RUNS.items():
-        for precision, compiled in builds.items():
-            loop = ClosedLoop(LoopSettings(duration, "ekf", bias=True, noise=True, **options), double)
-            tuning = loop.tuning
-            loop.filter = compiled.filter("cd_ekf", np.zeros(17), tuning["P0"], tuning["Q"], R=tuning["R"], gate="none")
-            rows = out.setdefault(label, {}).setdefault("cd_ekf", {})
-            try:
-                result = loop.run()
-            except SymkfError as exc:
-                rows[precision] = {"refused": str(exc), "refused_steps": 1}
-                continue
-            half = len(result.t) // 2
-            estimation = np.degrees(result.estimation_error("angle")[half:])
-            rows[precision] = {
-                "attitude_estimation_rms_deg": float(np.sqrt(np.mean(estimation ** 2))),
-                "attitude_rms_deg": float(np.sqrt(np.mean(result.attitude_deg[half:] ** 2))),
-                "bias_estimation_rms_rad_s": float(np.sqrt(np.mean(result.estimation_error("bias")[half:] ** 2))),
-                "refused_steps": 0, "ticks": len(result.t), "duration_s": duration,
-                "completed": bool(len(result.t) == len(np.arange(0.0, duration + 1e-9, TICK)))}
-    return out
+    return {label: {"cd_ekf": {precision: geo_loop(double, compiled, "cd_ekf", duration, options)
+                               for precision, compiled in builds.items()}}
+            for label, options in GEO_RUNS.items()}
 
 
 def run(args) -> int:
@@ -179,6 +163,11 @@ def run(args) -> int:
     if not args.skip_square_root:
         from symkf.scenarios.toolchain import square_root_float
         result["launcher_square_root"] = square_root_float.launcher(args.square_root_runs)
+        if not args.skip_attitude:
+            result["attitude_square_root"] = square_root_float.attitude(args.attitude_runs, args.attitude_duration)
+        if not args.skip_geo:
+            for label, rows in square_root_float.geo(args.geo_duration, GEO_RUNS).items():
+                result[f"geo_square_root_{label}"] = rows
         if args.model:
             result["model_square_root"] = square_root_float.user_model(args.model)
     emit(result, args.out, args.json, _print)
@@ -210,7 +199,9 @@ def _print(result: dict) -> None:
 
 
 #: (section, metric, unit) of the square-root rows; every build beside double.
-_SQUARE_ROOT_METRICS = {"launcher_square_root": ("r_rms_m", "m"), "model_square_root": ("position_rms_m", "m")}
+_SQUARE_ROOT_METRICS = {"launcher_square_root": ("r_rms_m", "m"), "attitude_square_root": ("attitude_rms_deg", "deg"),
+                        **{f"geo_square_root_{label}": ("attitude_estimation_rms_deg", "deg") for label in GEO_RUNS},
+                        "model_square_root": ("position_rms_m", "m")}
 
 
 def _print_square_root(result: dict) -> None:

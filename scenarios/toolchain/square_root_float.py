@@ -8,6 +8,14 @@ Rows of ``symkf bench float`` (:mod:`symkf.scenarios.toolchain.float_bench`):
   (double; float with the model's declared scales and offsets; float without them,
   ``scaling=False``, as a new user's model would be); whole-flight RMS of r, refused steps and the
   wall seconds of the compiled runs (``filter_seconds``: the square-root forms' cost beside the plain).
+- attitude (paper 000, scenario I): the MEKF and the square-root MEKF of the attitude model
+  (:func:`attitude_with_square_root`) over ``runs`` runs of ``duration`` s of the scenario's own
+  truth and sensors (:mod:`symkf.scenarios.attitude.compare`), double and float: attitude RMS over
+  the second half (deg) and refused steps.
+- geo (paper 003, Table 7 case 3 with bias and noise, and case 4 with gyros A and C failed): the
+  closed loop of :mod:`symkf.scenarios.geo.closed_loop` with the CD-EKF or the square-root CD-EKF
+  of :func:`geo_with_square_root` from each build (truth, sensors and controller in double):
+  RMS of the attitude estimation error over the second half (deg); a refused update stops the loop.
 - a user model file (``--model FILE``): the file's ``build()`` gives the model (its
   ``filters`` name the families compared) and its ``bench_case(rng)`` the record: a dict with
   ``x0, P0, Q, times, z, mask, truth, measurement`` (truth: (N, n), row k the state at times[k]),
@@ -17,7 +25,9 @@ Rows of ``symkf bench float`` (:mod:`symkf.scenarios.toolchain.float_bench`):
 Every filter is built from the same model file by the same generator; the float build differs
 only in ``casadi_real``. A step that a filter refuses (status other than 0) keeps its state and
 is counted. The launcher's square-root filters come from the model with the two families added
-(:func:`launcher_with_square_root`, its own build folder).
+(:func:`launcher_with_square_root`, its own build folder), and so do the attitude and geo ones.
+None of these models declares a scaling for its filters' states beyond the launcher's: the
+attitude and geo float builds are as a new user's model would be.
 """
 from __future__ import annotations
 
@@ -45,6 +55,26 @@ def launcher_with_square_root():
     model = copy.copy(get_model("launcher"))
     model.name, model.filters = "launcher_sr", LAUNCHER_FILTERS
     return model
+
+
+def attitude_with_square_root():
+    """The attitude model with the MEKF and the square-root MEKF, named ``attitude_sr``."""
+    model = copy.copy(get_model("attitude"))
+    model.name, model.filters = "attitude_sr", ATTITUDE_FILTERS
+    return model
+
+
+def geo_with_square_root():
+    """The geo model with the CD-EKF and the square-root CD-EKF, named ``geo_sr``."""
+    model = copy.copy(get_model("geo_satellite"))
+    model.name, model.filters = "geo_sr", GEO_FILTERS
+    return model
+
+
+#: The attitude and geo filters compared: the plain filter and its square-root form.
+ATTITUDE_FILTERS = ("mekf", "srmekf")
+GEO_FILTERS = ("cd_ekf", "srcdekf")
+PRECISION_BUILDS = (("double", {}), ("float", {"precision": "float"}))
 
 
 def launcher(runs: int, seed: int = 2005) -> dict:
@@ -102,3 +132,68 @@ def user_model(path: str, seed: int = 11) -> dict:
                 "position_rms_m": float(np.sqrt(np.mean(half ** 2))), "final_position_error_m": float(position[-1]),
                 "refused_steps": int(np.count_nonzero(result.status)), "steps": int(position.size)}
     return out
+
+
+def attitude(runs: int, duration: float, seed: int = 2008) -> dict:
+    """{filter: {build: {attitude_rms_deg, refused_steps, runs, duration_s}}}, scenario I."""
+    from symkf.models import attitude as att
+    from symkf.runtime import Filter
+    from symkf.scenarios.attitude import compare as A
+    simulator = A._simulator(duration)
+    records = []
+    for run in range(runs):
+        rng = A.run_rng(seed, run)
+        record = simulator.simulate(rng, np.full(3, A.SCENARIO_I_BIAS), A.STAR_TRACKER_PERIOD["I"])
+        records.append((record, A.initial_estimate(rng, record.q_true0)))
+    out: dict = {}
+    for label, overrides in PRECISION_BUILDS:
+        compiled = load(attitude_with_square_root(), **overrides)
+        for family in ATTITUDE_FILTERS:
+            squared, refused = [], 0
+            for record, q0 in records:
+                f = Filter(compiled, family, np.r_[q0, np.zeros(3)], A.P0, att.process_noise_psd(),
+                           R={"star_tracker": att.star_tracker_covariance()}, gate="none")
+                result = f.run_steps(np.full(len(record.omega_g), A.GYRO_PERIOD), record.star, "star_tracker",
+                                     u=record.omega_g, nan="mask", refused="continue")
+                refused += int(result.failed_steps.size)
+                angle = np.linalg.norm(A.attitude_errors(result.x[:, 0:4], record.q_true), axis=1)
+                squared.append(np.rad2deg(angle[angle.size // 2:]) ** 2)
+            out.setdefault(family, {})[label] = {"attitude_rms_deg": float(np.sqrt(np.mean(squared))),
+                                                 "refused_steps": refused, "runs": runs, "duration_s": duration}
+    return out
+
+
+def geo(duration: float, cases: dict) -> dict:
+    """{case: {filter: {build: {attitude_estimation_rms_deg, refused_steps, ...}}}}: the closed loops
+    ``cases`` ({label: LoopSettings options}, e.g. ``float_bench.GEO_RUNS``) with each filter from
+    each build (truth, sensors, control in double)."""
+    double = load("geo_satellite")
+    builds = {label: load(geo_with_square_root(), **overrides) for label, overrides in PRECISION_BUILDS}
+    out: dict = {}
+    for case, options in cases.items():
+        for family in GEO_FILTERS:
+            for label, compiled in builds.items():
+                out.setdefault(case, {}).setdefault(family, {})[label] = geo_loop(double, compiled, family, duration,
+                                                                                   options)
+    return out
+
+
+def geo_loop(double, compiled, family: str, duration: float, options: dict) -> dict:
+    """One geo closed loop (truth, sensors, control from ``double``) with filter ``family`` of
+    ``compiled``: RMS of the attitude estimation error, of the true attitude and of the bias
+    estimation error over the second half, or ``refused`` (a refused update stops the loop)."""
+    from symkf.scenarios.geo.closed_loop import TICK, ClosedLoop, LoopSettings
+    loop = ClosedLoop(LoopSettings(duration, "ekf", bias=True, noise=True, **options), double)
+    tuning = loop.tuning
+    loop.filter = compiled.filter(family, np.zeros(17), tuning["P0"], tuning["Q"], R=tuning["R"], gate="none")
+    try:
+        result = loop.run()
+    except SymkfError as exc:
+        return {"refused": str(exc), "refused_steps": 1}
+    half = len(result.t) // 2
+    estimation = np.degrees(result.estimation_error("angle")[half:])
+    return {"attitude_estimation_rms_deg": float(np.sqrt(np.mean(estimation ** 2))),
+            "attitude_rms_deg": float(np.sqrt(np.mean(result.attitude_deg[half:] ** 2))),
+            "bias_estimation_rms_rad_s": float(np.sqrt(np.mean(result.estimation_error("bias")[half:] ** 2))),
+            "refused_steps": 0, "ticks": len(result.t), "duration_s": duration,
+            "completed": bool(len(result.t) == len(np.arange(0.0, duration + 1e-9, TICK)))}

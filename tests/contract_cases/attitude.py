@@ -1,6 +1,10 @@
 """Contract cases of the star-tracker/gyro attitude model (paper 000): MEKF, separated and
-augmented UKF with the quaternion mean, star-tracker update (z a unit quaternion)."""
+augmented UKF with the quaternion mean, star-tracker update (z a unit quaternion); the square-root
+MEKF on the same model with that family added (tests/models/attitude_square_root_model.py), held
+to the paper's MEKF reference (the same estimator)."""
 from __future__ import annotations
+
+from pathlib import Path
 
 import numpy as np
 
@@ -10,6 +14,7 @@ from symkf.scenarios.attitude.filter import ReferenceAttitudeFilter
 from . import Case
 
 MODEL = "attitude"
+SQUARE_ROOT_MODEL = str(Path(__file__).resolve().parents[1] / "models" / "attitude_square_root_model.py")
 DT = 0.25
 
 
@@ -22,9 +27,10 @@ def cases() -> list[Case]:
     # z is perturbed by ~2 mrad against sigma 0.4 mrad: a stress record, not a consistent one, so the
     # default gate would refuse some updates; the references have no gate
     options = {"R": R, "gate": {"star_tracker": None}}
-    return [Case(MODEL, kind, x0, P0, Q, "star_tracker", dict(options, **({} if kind == "mekf" else {"kappa": 1.0})),
+    return [Case(SQUARE_ROOT_MODEL if kind == "srmekf" else MODEL, kind, x0, P0, Q, "star_tracker",
+                 dict(options, **({"kappa": 1.0} if "ukf" in kind else {})),
                  tags=frozenset({"quaternion_z"}), runs_by_steps=True, mask_size=1)   # Q/dt: every dt > 0
-            for kind in ("mekf", "sukf", "aukf")]
+            for kind in ("mekf", "sukf", "aukf", "srmekf")]
 
 
 def inputs(case: Case, k: int) -> dict:
@@ -34,7 +40,7 @@ def inputs(case: Case, k: int) -> dict:
 
 
 def reference_states(case: Case, n: int) -> list[np.ndarray]:
-    kind = {"sukf": "ukf"}.get(case.name, case.name)        # the paper's name of the separated UKF
+    kind = {"sukf": "ukf", "srmekf": "mekf"}.get(case.name, case.name)     # the paper's names
     ref = ReferenceAttitudeFilter(kind, case.x0[:4], case.x0[4:], case.P0, case.Q, case.options["R"]["star_tracker"],
                                   kappa=case.options.get("kappa", 1.0))
     out = []

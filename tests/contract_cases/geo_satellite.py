@@ -1,23 +1,27 @@
-"""Contract case of the Koreasat-3 model (paper 003): the continuous-discrete EKF, gyro update."""
+"""Contract cases of the Koreasat-3 model (paper 003): the continuous-discrete EKF, gyro update; the
+square-root CD-EKF on the same model with that family added (tests/models/geo_square_root_model.py)."""
 from __future__ import annotations
+
+from pathlib import Path
 
 import numpy as np
 
 from symkf.models import geo_satellite as G
 from symkf.models import get_model
-from symkf.runtime.reference import NumpyCDEKF
+from symkf.runtime.reference import for_family
 
 from . import Case
 
 MODEL = "geo_satellite"
+SQUARE_ROOT_MODEL = str(Path(__file__).resolve().parents[1] / "models" / "geo_square_root_model.py")
 DT = 0.125
 
 
 def cases() -> list[Case]:
     tune = G.filter_tuning()
     x0 = G.initial_errors(G.TABLE6) + np.r_[np.zeros(3), 1e-3 * np.ones(3), np.zeros(11)]
-    return [Case(MODEL, "cd_ekf", x0, tune["P0"], tune["Q"], "gyro", {"R": tune["R"]},
-                 tags=frozenset({"separate_update"}))]
+    return [Case(model, family, x0, tune["P0"], tune["Q"], "gyro", {"R": tune["R"]}, tags=frozenset({"separate_update"}))
+            for model, family in ((MODEL, "cd_ekf"), (SQUARE_ROOT_MODEL, "srcdekf"))]
 
 
 def inputs(case: Case, k: int) -> dict:
@@ -26,7 +30,7 @@ def inputs(case: Case, k: int) -> dict:
 
 
 def reference_states(case: Case, n: int) -> list[np.ndarray]:
-    ref = NumpyCDEKF(get_model(MODEL), case.x0, case.P0, case.Q, case.options["R"])
+    ref = for_family(case.name)(get_model(case.model), case.x0, case.P0, case.Q, case.options["R"])
     out = []
     for k in range(1, n + 1):
         a = inputs(case, k)

@@ -62,3 +62,23 @@ def test_bench_float_square_root_rows(tmp_path, capsys):
         leo = result["model_square_root"][family]
         assert leo["double"]["refused_steps"] == leo["float"]["refused_steps"] == 0, leo
         assert leo["float"]["position_rms_m"] < 2 * leo["double"]["position_rms_m"], leo
+
+
+@pytest.mark.slow
+def test_bench_float_attitude_and_geo_square_root_rows():
+    """The MEKF / SR-MEKF rows (attitude scenario I) and the CD-EKF / SR-CD-EKF rows (geo closed
+    loops): double and float of each, no refused step, float within 2x of double (measured at the
+    bench's defaults: within 1.0002x), the square-root form equal to the plain one in double."""
+    from symkf.scenarios.toolchain import square_root_float as S
+    from symkf.scenarios.toolchain.float_bench import GEO_RUNS
+    attitude = S.attitude(1, 120.0)
+    geo = S.geo(50.0, GEO_RUNS)
+    rows = [attitude[f] for f in S.ATTITUDE_FILTERS] + [geo[c][f] for c in GEO_RUNS for f in S.GEO_FILTERS]
+    metric = ["attitude_rms_deg"] * 2 + ["attitude_estimation_rms_deg"] * 4
+    for row, name in zip(rows, metric):
+        assert row["double"]["refused_steps"] == row["float"]["refused_steps"] == 0, row
+        assert row["float"][name] < 2 * row["double"][name], row
+    assert abs(attitude["srmekf"]["double"]["attitude_rms_deg"] / attitude["mekf"]["double"]["attitude_rms_deg"] - 1) < 1e-9
+    for case in GEO_RUNS:
+        plain, square_root = geo[case]["cd_ekf"]["double"], geo[case]["srcdekf"]["double"]
+        assert abs(square_root["attitude_estimation_rms_deg"] / plain["attitude_estimation_rms_deg"] - 1) < 1e-6, case
