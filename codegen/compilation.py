@@ -47,11 +47,12 @@ def compiler_identity(cc: str) -> str:
     return f"{shutil.which(argv[0])} {' '.join(argv[1:])}: {version}".strip()
 
 
-def compile_flags(config: CodegenConfig, unit: str = "") -> list[str]:
+def compile_flags(config: CodegenConfig, unit: str = "", host: bool = True) -> list[str]:
     """Flags of a unit (:func:`unit_optimization`), in the library and in the bundle's Makefile alike,
-    but for the library's SIMD lanes (c_backend/lanes.py ``host_flags``: the Makefile has none)."""
+    but for the library's SIMD lanes (c_backend/lanes.py ``host_flags``: the Makefile has none;
+    ``host=False``: the bundle's flags)."""
     return (c_makefile.STRICT_FLAGS.split() + unit_optimization(config, unit).split() + ["-fPIC"]
-            + c_makefile.precision_flags(config) + c_lanes.host_flags(config, unit))
+            + c_makefile.precision_flags(config) + (c_lanes.host_flags(config, unit) if host else []))
 
 
 def compiler_failure(what: str, cmd: list[str], stderr: str, directory: Path) -> BuildError:
@@ -137,6 +138,7 @@ class _Unit:
     text: str
     cached: Path | None = None           # its object cache entry (None: not keyed yet)
     job: int | None = None               # its compile in the pool (None: the object came from the cache)
+    stack_job: int | None = None         # the compile of its call graph with the bundle's flags, if apart
 
 
 class UnitCompiler:
@@ -173,6 +175,17 @@ class UnitCompiler:
     def flags(self, file: str) -> list[str]:
         return compile_flags(self.config, file) + (c_makefile.STACK_FLAGS.split() if self.stack else [])
 
+    def _stack_apart(self, file: str) -> bool:
+        """Whether the unit's call graph needs a compile of its own: a unit the library compiles
+        with the hook of its SIMD lanes has other frames than the bundle's (which has no lanes),
+        and the header states the bundle's stack."""
+        return self.stack and bool(c_lanes.host_flags(self.config, file)) and not file.endswith("_lanes.c")
+
+    def _cancel(self, unit: "_Unit") -> None:
+        for job in (unit.job, unit.stack_job):
+            if job is not None:
+                self.pool.cancel(job)
+
     def add(self, texts: dict[str, str]) -> None:
         """Write these units and start compiling each one whose object is not cached; a unit
         written before with another text is cancelled and restarted. A unit that includes the
@@ -181,8 +194,8 @@ class UnitCompiler:
             unit = self.units.get(file)
             if unit is not None and unit.text == text:
                 continue
-            if unit is not None and unit.job is not None:
-                self.pool.cancel(unit.job)
+            if unit is not None:
+                self._cancel(unit)
             (self.directory / file).write_text(text)
             self.units[file] = _Unit(text)
             if f'#include "{self.header}"' not in text:
@@ -194,9 +207,17 @@ class UnitCompiler:
         unit = self.units[file]
         unit.cached = self.cache / hashlib.sha256((identity + keyed_text).encode()).hexdigest()[:32]
         obj = self.directory / (file[:-2] + ".o")
-        if not _reuse(unit.cached, obj, self.suffixes):
+        if _reuse(unit.cached, obj, self.suffixes):
+            return
+        if not self._stack_apart(file):
             unit.job = self.pool.submit(self.cc.split() + self.flags(file) + ["-c", "-o", obj.name, file],
                                         priority=len(unit.text))      # the longest compile first
+            return
+        unit.job = self.pool.submit(self.cc.split() + compile_flags(self.config, file) + ["-c", "-o", obj.name, file],
+                                    priority=len(unit.text))
+        unit.stack_job = self.pool.submit(self.cc.split() + compile_flags(self.config, file, host=False)
+                                          + c_makefile.STACK_FLAGS.split() + ["-c", "-o", file[:-2] + ".stack.o", file],
+                                          priority=len(unit.text))
 
     def finish(self, sources: list[str]) -> tuple[list[Path], list[str]]:
         """Start the units that include the header, wait for every compile and cache the new
@@ -204,10 +225,8 @@ class UnitCompiler:
         but not in ``sources`` (early ones the final code does not have) are removed."""
         self.pool.jobs = self.jobs                                       # done generating: every core compiles
         for file in set(self.units) - set(sources):
-            unit = self.units.pop(file)
-            if unit.job is not None:
-                self.pool.cancel(unit.job)
-            for suffix in (".c", ".o", ".ci", ".su"):
+            self._cancel(self.units.pop(file))
+            for suffix in (".c", ".o", ".ci", ".su", ".stack.o", ".stack.ci", ".stack.su"):
                 (self.directory / (file[:-2] + suffix)).unlink(missing_ok=True)
         waiting = [file for file in sources if self.units[file].cached is None]
         commands = [self.cc.split() + compile_flags(self.config, file) + ["-E", "-o", file[:-2] + ".i", file]
@@ -223,11 +242,17 @@ class UnitCompiler:
         results = self.pool.wait()
         compiled = [file for file in sources if self.units[file].job is not None]
         for file in compiled:
-            returncode, stderr = results[self.units[file].job]
-            if returncode != 0:
-                cmd = self.cc.split() + self.flags(file) + ["-c", file]
-                raise compiler_failure(f"compiling {file}", cmd, stderr, self.directory)
+            for job in (self.units[file].job, self.units[file].stack_job):
+                returncode, stderr = results[job] if job is not None else (0, "")
+                if returncode != 0:
+                    cmd = self.cc.split() + self.flags(file) + ["-c", file]
+                    raise compiler_failure(f"compiling {file}", cmd, stderr, self.directory)
         for file in compiled:
+            if self.units[file].stack_job is not None:       # the bundle's call graph beside the library's object
+                stem = self.directory / file[:-2]
+                Path(f"{stem}.stack.ci").replace(f"{stem}.ci")
+                for leftover in (".stack.o", ".stack.su"):
+                    Path(f"{stem}{leftover}").unlink(missing_ok=True)
             _store(self.units[file].cached, self.directory / (file[:-2] + ".o"), self.suffixes)
         _prune(self.cache, keep=400)
         return [self.directory / (file[:-2] + ".o") for file in sources], compiled

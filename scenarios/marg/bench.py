@@ -20,7 +20,7 @@
   the trusted kernel, runtime/fastpath.py) and ``run`` (``Filter.run`` over the whole trial:
   contract checks, masks and the C loop); its BROAD RMSE per trial.
 - ``pipeline_vs_vqf``: the whole ``symkf compare marg`` pipeline of the MEKF (masks + run) per
-  sample against VQF's ``updateBatch`` on the same trial, side by side (``scenarios/marg/vqf_bench.py``;
+  sample against VQF's ``updateBatch`` on the same trial, side by side (``scenarios/marg/vqf_timing.py``;
   skipped with a message when the vqf package is missing).
 - ``--instructions``: the MEKF's C API per sample under callgrind (deterministic; predict, update,
   step and run, and the step kernel's share of the run: ``scenarios/marg/instructions.py``).
@@ -45,7 +45,7 @@ from symkf.scenarios.marg.broad_metric import broad_errors
 from . import mekf, mekf_offline
 from .instructions import count_instructions
 from .compare import SWEEP_BETAS
-from .vqf_bench import pipeline_vs_vqf, print_table as print_vqf_table
+from .vqf_timing import pipeline_vs_vqf, print_table as print_vqf_table
 
 FORMS = ("simple", "full")
 

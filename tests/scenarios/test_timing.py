@@ -26,7 +26,9 @@ def test_a_count_of_calls_per_function_divides_its_own_rounds():
                                  calls={"sleep": 4, "busy": 1})
     assert 0.005 <= samples["sleep"].median < 0.05
     assert samples["sleep"].cpu_median < 0.002
-    assert samples["busy"].cpu_us >= 0.02e6 and samples["busy"].cpu_median <= samples["busy"].median
+    assert samples["busy"].cpu_us >= 0.02e6
+    # the two clocks tick apart: thread CPU may read a few microseconds above the wall clock
+    assert samples["busy"].cpu_median <= 1.01 * samples["busy"].median
 
 
 def test_from_rounds_gathers_wall_and_cpu_per_name():
