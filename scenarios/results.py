@@ -25,7 +25,7 @@ import numpy as np
 
 NETCDF_FILE = "series.nc"
 NPZ_FILE = "series.npz"
-HOW_TO_GET_NETCDF = "pip install 'symkf[results]' (xarray + h5netcdf)"
+HOW_TO_GET_NETCDF = "pip install 'symkf[results]' (xarray + h5netcdf + h5py)"
 _said_fallback = False
 
 
@@ -82,9 +82,11 @@ def trimmed(data: np.ndarray, length: int) -> np.ndarray:
 
 
 def netcdf_available() -> bool:
-    """xarray and h5netcdf importable (the ``results`` extra)."""
+    """xarray, h5netcdf and its h5py importable (the ``results`` extra; h5netcdf installs without
+    h5py, and then cannot write)."""
     try:
         import h5netcdf  # noqa: F401
+        import h5py  # noqa: F401
         import xarray  # noqa: F401
     except ImportError:
         return False

@@ -1,6 +1,8 @@
 """The saved series of a comparison (scenarios/results.py): netCDF with dimensions and units when
 the `results` extra is installed, else .npz with the same content, said once on stderr; loaded back
 to the same numbers either way."""
+import sys
+
 import numpy as np
 import pytest
 
@@ -60,3 +62,10 @@ def test_a_folder_without_series_is_refused_by_name(tmp_path):
         R.load(tmp_path)
     with pytest.raises(ValueError, match="dimensions"):
         R.var(["a"], np.zeros((2, 2)))
+
+
+@pytest.mark.parametrize("missing", ["xarray", "h5netcdf", "h5py"])
+def test_netcdf_needs_all_three_packages_of_the_extra(monkeypatch, missing):
+    """h5netcdf installs without h5py and then cannot write: each missing package means .npz."""
+    monkeypatch.setitem(sys.modules, missing, None)           # `import missing` raises ImportError
+    assert R.netcdf_available() is False
