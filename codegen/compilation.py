@@ -217,7 +217,7 @@ class UnitCompiler:
                                     priority=len(unit.text))
         unit.stack_job = self.pool.submit(self.cc.split() + compile_flags(self.config, file, host=False)
                                           + c_makefile.STACK_FLAGS.split() + ["-c", "-o", file[:-2] + ".stack.o", file],
-                                          priority=len(unit.text))
+                                          priority=len(unit.text), counted=False)
 
     def finish(self, sources: list[str]) -> tuple[list[Path], list[str]]:
         """Start the units that include the header, wait for every compile and cache the new

@@ -82,9 +82,11 @@ class CompilerPool:
 
     def __init__(self, cwd: Path, jobs: int | None = None, cores: int | None = None, on_finished=None):
         self.cwd, self.jobs = cwd, max(1, jobs or os.cpu_count() or 1)
-        #: called as ``on_finished(finished, submitted)`` when commands finish (cancelled ones not counted)
+        #: called as ``on_finished(finished, submitted)`` when commands finish (cancelled ones, and
+        #: those submitted with ``counted=False``, not counted)
         self.on_finished = on_finished
-        self.cancelled = 0
+        self.cancelled: set[int] = set()
+        self.uncounted: set[int] = set()
         self.cores = max(self.jobs, cores or os.cpu_count() or 1)
         self.pending: list[tuple[int, list[str]]] = []
         self.running: dict[int, tuple[subprocess.Popen, object]] = {}
@@ -100,9 +102,12 @@ class CompilerPool:
             for index in list(self.running):
                 self.cancel(index)
 
-    def submit(self, cmd: list[str], priority: float = 0) -> int:
+    def submit(self, cmd: list[str], priority: float = 0, counted: bool = True) -> int:
         """Queue a command (started at once if a slot is free; queued ones start highest
-        ``priority`` first, in order of submission among equals); returns its index."""
+        ``priority`` first, in order of submission among equals); returns its index. A command
+        not ``counted`` is left out of ``on_finished``'s figures (a unit's second compile)."""
+        if not counted:
+            self.uncounted.add(self.submitted)
         self.pending.append((self.submitted, cmd))
         self.priority[self.submitted] = priority
         self.pending.sort(key=lambda item: -self.priority[item[0]])
@@ -121,7 +126,8 @@ class CompilerPool:
                 del self.running[index]
                 finished = True
         if finished and self.on_finished is not None:
-            self.on_finished(len(self.results) - self.cancelled, self.submitted - self.cancelled)
+            left_out = self.cancelled | self.uncounted
+            self.on_finished(sum(1 for index in self.results if index not in left_out), self.submitted - len(left_out))
         while self.pending and (len(self.running) < self.jobs or self._outranks_running()):
             index, cmd = self.pending.pop(0)
             log = tempfile.TemporaryFile(mode="w+")
@@ -144,7 +150,7 @@ class CompilerPool:
             proc.wait()
             log.close()
         if index not in self.results:
-            self.cancelled += 1
+            self.cancelled.add(index)
         self.results[index] = (-signal.SIGKILL, "cancelled")
 
     def wait(self) -> dict[int, tuple[int, str]]:

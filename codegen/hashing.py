@@ -42,6 +42,7 @@ FRAMEWORK_MODULES = ("symkf.codegen.build_folders", "symkf.codegen.c_backend.api
                      "symkf.codegen.c_backend.stack", "symkf.codegen.c_backend.template_util", "symkf.codegen.c_backend.units",
                      "symkf.codegen.compilation",
                      "symkf.codegen.compiler_pool", "symkf.codegen.discretize", "symkf.codegen.errors", "symkf.codegen.export",
+                     "symkf.codegen.float_check",
                      "symkf.codegen.generation", "symkf.codegen.hashing", "symkf.codegen.families.framework",
                      "symkf.codegen.model_functions",
                      "symkf.codegen.lifecycle", "symkf.codegen.linalg", "symkf.codegen.manifest", "symkf.codegen.progress",
