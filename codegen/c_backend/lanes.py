@@ -78,8 +78,8 @@ class LaneSpec:
 
 
 def enabled(config) -> bool:
-    """Lanes for this configuration: ``ukf_lanes`` (default on), double precision, an x86-64 host."""
-    return bool(config.get("ukf_lanes", True)) and config.precision == "double" and platform.machine() in (
+    """Lanes for this configuration: ``ukf_lanes`` (default off), double precision, an x86-64 host."""
+    return bool(config.get("ukf_lanes", False)) and config.precision == "double" and platform.machine() in (
         "x86_64", "AMD64")
 
 

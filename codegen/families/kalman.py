@@ -59,9 +59,11 @@ class UkfOptions:
     centre_free: bool = option(True, "with kappa = 0 (centre weight exactly 0) skip propagating the centre sigma "
                                      "point, picked at call time; the same numbers as propagating it")
 
-    lanes: bool = option(True, "the host library propagates the sigma points 4 at a time in SIMD lanes on an AVX2 "
-                               "CPU (libmvec's sin/cos: round-off differs; codegen/c_backend/lanes.py); the flight "
-                               "bundle stays scalar")
+    lanes: bool = option(False, "the host library propagates the sigma points 4 at a time in SIMD lanes on an AVX2 "
+                                "CPU (libmvec's sin/cos; codegen/c_backend/lanes.py): about half the UKF's "
+                                "instructions, but round-off differs from the flight bundle's scalar code, which "
+                                "moves chaotic excursion runs (off by default: the library computes what the "
+                                "bundle computes)")
 
     lanes_update: bool = option(False, "with ukf_lanes, the update's h at the sigma points in lanes too (libmvec's "
                                        "atan2, sin, cos: 18.4k instead of 23.5k instructions per launcher step; its "
@@ -72,7 +74,7 @@ class UkfOptions:
     @classmethod
     def of(cls, config) -> "UkfOptions":
         return cls(*(bool(config.get(f"{cls.prefix}{f}", d)) for f, d in
-                     (("centre_free", True), ("lanes", True), ("lanes_update", False))))
+                     (("centre_free", True), ("lanes", False), ("lanes_update", False))))
 
 
 # ---------------------------------------------------------------------- process noise

@@ -34,8 +34,8 @@ it ran (content hash, -O flags).
 update, the fused step, a step inside the run loop, a backward step of the RTS smoother's
 ``<filter>_smooth_run`` over that run), with where a step's instructions go
 (wrapper, run loop, propagation, h and H, predict and update kernels, libm), and the UKF step of
-the build without SIMD lanes (``ukf_lanes=False``: the sigma points one at a time, as the flight
-bundle computes them) in the row "scalar sigma pts".
+the build with SIMD lanes (``ukf_lanes=True``: four sigma points at a time in AVX2 lanes; the
+default library, like the flight bundle, computes them one at a time) in the row "SIMD lanes".
 """
 from __future__ import annotations
 
@@ -350,15 +350,15 @@ def c_loop_instructions(work: Workload) -> dict[str, dict]:
 
 #: The build of the "scalar" row of ``--instructions``: the UKF's sigma points one at a time
 #: (scalar libm), as the flight bundle computes them.
-SCALAR_BUILD = {"ukf_lanes": False}
+LANES_BUILD = {"ukf_lanes": True}
 
 
-def scalar_step_instructions(work: Workload) -> dict[str, float]:
-    """Instructions per fused UKF step of :data:`SCALAR_BUILD` (the EKF's step has no lanes)."""
+def lanes_step_instructions(work: Workload) -> dict[str, float]:
+    """Instructions per fused UKF step of :data:`LANES_BUILD` (the EKF's step has no lanes)."""
     if not shutil.which("valgrind"):
         return {}
     with tempfile.TemporaryDirectory() as tmp:
-        exe = _compile_c_loop(build_model("launcher", **SCALAR_BUILD).directory, Path(tmp))
+        exe = _compile_c_loop(build_model("launcher", **LANES_BUILD).directory, Path(tmp))
         return {"ukf": _instructions_per_step(exe, "ukf", "step", _c_loop_input(work), Path(tmp))[0]}
 
 
@@ -417,7 +417,7 @@ def measure(steps: int, reference_steps: int, campaign: bool, instructions: bool
               "ratios by round": spread, "steps": steps, "reference_steps": reference_steps, "rounds": ROUNDS,
               "load_average": {"before": load_before, "after": timing.load_average()}}
     if instructions:
-        report["scalar_instructions_per_step"] = scalar_step_instructions(work)
+        report["lanes_instructions_per_step"] = lanes_step_instructions(work)
     if campaign:
         report.update(time_campaign(scheduler))
     return report
@@ -519,9 +519,9 @@ def human_table(report: dict) -> str:
     counts = {r["filter"]: r["instructions_per_step"] for r in report["rows"] if "instructions_per_step" in r}
     if counts:
         lines.append(f"{'c_loop instr.':<18}{counts['ekf']:>14.0f}{counts['ukf']:>14.0f}{counts['ukf'] / counts['ekf']:>10.2f}")
-        scalar = report.get("scalar_instructions_per_step", {}).get("ukf")
-        if scalar:          # the same step with the sigma points one at a time (the flight bundle's way)
-            lines.append(f"{'  scalar sigma pts':<18}{counts['ekf']:>14.0f}{scalar:>14.0f}{scalar / counts['ekf']:>10.2f}")
+        lanes = report.get("lanes_instructions_per_step", {}).get("ukf")
+        if lanes:           # the same step with four sigma points at a time (ukf_lanes=True)
+            lines.append(f"{'  SIMD lanes':<18}{counts['ekf']:>14.0f}{lanes:>14.0f}{lanes / counts['ekf']:>10.2f}")
     for family in FILTERS:
         lines.append(f"{family}: " + ", ".join(f"{k} = {v:.1f}" for k, v in report["ratios"][family].items()))
     for name, by_round in report.get("ratios by round", {}).items():

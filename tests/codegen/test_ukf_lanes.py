@@ -24,6 +24,12 @@ def scalar():
     return load("launcher", backend="compiled", ukf_lanes=False)
 
 
+@pytest.fixture(scope="module")
+def lanes_build():
+    """The library with the lanes (an option: the default library computes what the bundle computes)."""
+    return load("launcher", backend="compiled", ukf_lanes=True)
+
+
 def _run(model, family="ukf", seed=11):
     times, truth, track = case_flight(20, L.T_INSERTION, "radar_wgs84")
     x0, P0 = initial_estimate(Case(20, "small"), truth[0], TUNING["P0_floor"])
@@ -33,8 +39,8 @@ def _run(model, family="ukf", seed=11):
 
 
 @pytest.mark.skipif(not AVX2, reason="this CPU has no AVX2: the library runs the scalar sigma points")
-def test_whole_flight_in_lanes_equals_scalar_to_round_off(launcher_compiled, scalar):
-    (fast, truth), (slow, _) = _run(launcher_compiled), _run(scalar)
+def test_whole_flight_in_lanes_equals_scalar_to_round_off(lanes_build, scalar):
+    (fast, truth), (slow, _) = _run(lanes_build), _run(scalar)
     assert np.all(np.asarray(fast.status) == 0) and np.all(np.asarray(slow.status) == 0)
     x_fast, x_slow = np.asarray(fast.x), np.asarray(slow.x)
     assert not np.array_equal(x_fast, x_slow), "the lanes ran: libmvec's round-off is not libm's"
@@ -45,20 +51,20 @@ def test_whole_flight_in_lanes_equals_scalar_to_round_off(launcher_compiled, sca
     assert np.max(np.abs(P_fast - P_slow) / np.einsum("ki,kj->kij", sigma, sigma)) < 1e-5
 
 
-def test_ekf_has_no_lanes(launcher_compiled, scalar):
-    np.testing.assert_array_equal(np.asarray(_run(launcher_compiled, "ekf")[0].x), np.asarray(_run(scalar, "ekf")[0].x))
+def test_ekf_has_no_lanes(lanes_build, scalar):
+    np.testing.assert_array_equal(np.asarray(_run(lanes_build, "ekf")[0].x), np.asarray(_run(scalar, "ekf")[0].x))
 
 
-def test_library_calls_libmvec_and_the_scalar_build_does_not(launcher_compiled, scalar):
-    fast, slow = (Path(m.build.library).read_bytes() for m in (launcher_compiled, scalar))
+def test_library_calls_libmvec_and_the_scalar_build_does_not(lanes_build, scalar):
+    fast, slow = (Path(m.build.library).read_bytes() for m in (lanes_build, scalar))
     for symbol in (b"_ZGVdN4v_sin", b"_ZGVdN4v_cos", b"launcher_lanes_fd_sigma_centre_free_plain"):
         assert symbol in fast and symbol not in slow
 
 
-def test_bundle_makefile_compiles_the_scalar_code_only(launcher_compiled, tmp_path):
+def test_bundle_makefile_compiles_the_scalar_code_only(lanes_build, tmp_path):
     """Without the library's SYMKF_LANES (the bundle's Makefile flags), the lanes unit compiles to
     no code and the scalar unit does not call it: the flight bundle is the scalar C99."""
-    directory = Path(launcher_compiled.build.directory)
+    directory = Path(lanes_build.build.directory)
     for unit in ("launcher_lanes.c", "launcher_fn_fd_sigma_centre_free_plain.c"):
         obj = tmp_path / (unit[:-2] + ".o")
         subprocess.run(compiler().split() + ["-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic", "-O1",
@@ -69,17 +75,18 @@ def test_bundle_makefile_compiles_the_scalar_code_only(launcher_compiled, tmp_pa
     assert "SYMKF_LANES" not in makefile and "openmp" not in makefile
 
 
-def test_lanes_only_for_double_builds_on_x86_64():
-    assert not lanes.enabled(make_config("launcher", precision="float"))
+def test_lanes_only_when_asked_and_for_double_builds_on_x86_64():
+    assert not lanes.enabled(make_config("launcher"))             # the default library: the bundle's scalar code
+    assert not lanes.enabled(make_config("launcher", precision="float", ukf_lanes=True))
     assert not lanes.enabled(make_config("launcher", ukf_lanes=False))
     assert lanes.host_flags(make_config("launcher", ukf_lanes=False), "launcher_lanes.c") == []
 
 
 @pytest.mark.skipif(not AVX2, reason="this CPU has no AVX2: the library runs the scalar sigma points")
-def test_update_lanes_only_when_asked(launcher_compiled, scalar):
+def test_update_lanes_only_when_asked(lanes_build, scalar):
     """``ukf_lanes_update``: h at the sigma points in lanes too (libmvec's atan2); off by default."""
-    update = load("launcher", backend="compiled", ukf_lanes_update=True)
-    default, asked = (Path(m.build.library).read_bytes() for m in (launcher_compiled, update))
+    update = load("launcher", backend="compiled", ukf_lanes=True, ukf_lanes_update=True)
+    default, asked = (Path(m.build.library).read_bytes() for m in (lanes_build, update))
     for symbol in (b"_ZGVdN4vv_atan2", b"launcher_lanes_h_radar_wgs84_at_sigma"):
         assert symbol in asked and symbol not in default
     (fast, _), (slow, _) = _run(update), _run(scalar)
