@@ -20,7 +20,9 @@ How it is reached: the scalar unit keeps its code and starts with a call of this
 under ``#ifdef SYMKF_LANES``; that function returns 0 (the scalar code runs) unless the CPU has
 AVX2 (``__builtin_cpu_supports``). Only the library's compile defines SYMKF_LANES
 (:func:`host_flags`): the bundle's Makefile compiles the scalar code alone and this unit to an
-empty one. A single precision build, a CPU other than x86-64, or ``ukf_lanes=False`` has no lanes.
+empty one. Lanes are an option (``ukf_lanes=True``; off by default, so that the library computes
+what the bundle computes: their round-off can move a chaotic run, docs/performance.md); a single
+precision build or a CPU other than x86-64 has none.
 """
 from __future__ import annotations
 
