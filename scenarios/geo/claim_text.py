@@ -47,9 +47,10 @@ def _cells(evidence) -> str:
         return _number(evidence)
     parts = []
     for key, value in evidence.items():
-        if isinstance(value, dict):
-            inner = ", ".join(f"{k.replace('_', ' ')} {_number(v)}" for k, v in value.items() if not isinstance(v, dict))
-            parts.append(f"{key}: {inner}")
+        if isinstance(value, dict):       # one level deep: a nested entry by its name only
+            inner = ", ".join(k.replace('_', ' ') if isinstance(v, dict) else f"{k.replace('_', ' ')} {_number(v)}"
+                              for k, v in value.items())
+            parts.append(f"{key}: {inner or 'none'}")
         else:
             parts.append(f"{key.replace('_', ' ')} {_number(value)}")
     return "; ".join(parts)

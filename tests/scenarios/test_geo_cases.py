@@ -106,3 +106,12 @@ def test_bench_counts_instructions_of_the_smoother_beside_the_filter():
     assert 0 < counts["predict"] < counts["forward_step"] < counts["backward_step"]
     assert counts["backward_over_forward"] == pytest.approx(counts["backward_step"] / counts["forward_step"])
     assert counts["backward_step"] < 10 * counts["forward_step"]
+
+
+def test_a_claim_with_no_exceptions_says_none_and_one_with_them_names_them():
+    from symkf.scenarios.geo.claim_text import claim
+    clean = claim("rts_rms_at_most_filter_rms", {"value": True, "evidence": {"exceptions": {}, "refused": {}}})
+    assert clean.compared == "exceptions: none; refused: none" and clean.holds
+    failed = claim("rts_rms_at_most_filter_rms", {"value": False, "evidence": {
+        "exceptions": {"fail_B.bias": {"filtered": 0.02, "smoothed": 0.021}}, "refused": {"fail_B": 3}}})
+    assert failed.compared == "exceptions: fail B.bias; refused: fail B 3" and not failed.holds
