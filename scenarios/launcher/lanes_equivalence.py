@@ -24,7 +24,8 @@ import numpy as np
 from symkf.models import launcher as L
 from symkf.runtime import smooth
 from symkf.scenarios.metrics import state_error
-from .campaign import ANGLE_STATES, STATE_NAMES, TUNING, Case, case_flight, initial_estimate, measurements, outcome
+from .campaign import (ANGLE_STATES, STATE_NAMES, TUNING, Case, case_flight, initial_estimate, make_filter,
+                       measurements, outcome)
 
 #: The build whose numbers the comparison starts from: the scalar code of every sigma point.
 REFERENCE_BUILD = {"ukf_lanes": False, "ukf_centre_free": False}
@@ -41,8 +42,7 @@ def run_errors(model, case: Case, runs: int, estimate: str) -> np.ndarray:
     times, truth, track = case_flight(case.rate_hz, L.T_INSERTION, measurement)
     q, (x0, P0) = track.station_params(), initial_estimate(case, truth[0], TUNING["P0_floor"])
     family = estimate.split("_")[0]
-    f = model.filter(family, x0, P0, TUNING["Q"] * TUNING[f"{family}_q_scale"], gate="none", t0=times[0],
-                     **({"kappa": TUNING["kappa"]} if family == "ukf" else {}))
+    f = make_filter(model, family, x0, P0, TUNING, times[0])
     out = np.empty((runs, len(times), 6))
     for run in range(runs):
         f.x, f.P, f.t = x0, P0, times[0]
