@@ -19,7 +19,7 @@ import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
-from .c_backend import lanes as c_lanes, makefile as c_makefile, stack as c_stack
+from .c_backend import lanes as c_lanes, lockstep as c_lockstep, makefile as c_makefile, stack as c_stack
 from .compiler_pool import CompilerPool, run_compiler, run_compilers
 from .errors import BuildError, CompilerNotFound
 from .manifest import sha256_bytes, sha256_file
@@ -52,7 +52,8 @@ def compile_flags(config: CodegenConfig, unit: str = "", host: bool = True) -> l
     but for the library's SIMD lanes (c_backend/lanes.py ``host_flags``: the Makefile has none;
     ``host=False``: the bundle's flags)."""
     return (c_makefile.STRICT_FLAGS.split() + unit_optimization(config, unit).split() + ["-fPIC"]
-            + c_makefile.precision_flags(config) + (c_lanes.host_flags(config, unit) if host else []))
+            + c_makefile.precision_flags(config)
+            + (c_lanes.host_flags(config, unit) + c_lockstep.host_flags(config, unit) if host else []))
 
 
 def compiler_failure(what: str, cmd: list[str], stderr: str, directory: Path) -> BuildError:
@@ -179,7 +180,7 @@ class UnitCompiler:
         """Whether the unit's call graph needs a compile of its own: a unit the library compiles
         with the hook of its SIMD lanes has other frames than the bundle's (which has no lanes),
         and the header states the bundle's stack."""
-        return self.stack and bool(c_lanes.host_flags(self.config, file)) and not file.endswith("_lanes.c")
+        return self.stack and bool(c_lanes.host_flags(self.config, file)) and not file.endswith(("_lanes.c", "_lockstep.c"))
 
     def _cancel(self, unit: "_Unit") -> None:
         for job in (unit.job, unit.stack_job):

@@ -148,6 +148,9 @@ class EventBranches:
         self.model, self.events = model, tuple(model.events) if split_events else ()
         self.substeps, self.method, self.precision = substeps, method, precision
         self.branches = self._branches(substeps, method, precision, increment=False)
+        #: by name, the plain branch of each function :meth:`function` made with two branches (what
+        #: it evaluates when no event lies in the step: the lockstep lanes, c_backend/flatten.py)
+        self.plain_functions: dict[str, ca.Function] = {}
         #: the same branches in increment form: f_inc(t, dt, x, y0, u, p, w) -> y (:func:`integrate`)
         self.increment_branches = self._branches(substeps, method, precision, increment=True)
 
@@ -206,6 +209,7 @@ class EventBranches:
         else:
             split_fn = ca.Function(f"{name}_split", sym, split(*sym), input_names, output_names, options)
         switch = ca.Function.conditional(f"{name}_branch", [plain_fn], split_fn)
+        self.plain_functions[name] = plain_fn
         flag = event_in_step(sym[0], sym[1], self.events)
         return ca.Function(name, sym, switch.call([flag, *sym]), input_names, output_names, options)
 

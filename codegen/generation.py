@@ -16,7 +16,7 @@ import casadi as ca
 from symkf.models import Model, get_model
 from symkf.models.checks import check_parameters_used
 from . import families  # noqa: F401  (families register themselves on import)
-from .c_backend import header as c_header, lanes as c_lanes, makefile as c_makefile, units as c_units
+from .c_backend import header as c_header, lanes as c_lanes, lockstep as c_lockstep, makefile as c_makefile, units as c_units
 from .c_backend.names import check_c_names
 from .compilation import UnitCompiler, compile_flags, compiler_identity, unit_optimization
 from .errors import BuildError
@@ -80,11 +80,13 @@ def generate_validated(model: Model, config: CodegenConfig, on_part=None) -> Bun
     own = model_kernels(model, symbols, functions)
     if on_part is not None:
         on_part(0, Bundle(model.name, list(own), config, model.describe()))
-    made, lanes = {}, ()
+    made, lanes, lockstep = {}, (), ()
     for family in sorted(model.filters, key=lambda name: name not in LONG_COMPILE):    # stable: else the model's order
         made[family] = FAMILIES[family](model, symbols, functions)
         if family == "ukf":                 # its sigma points in SIMD lanes (host library only)
             lanes = c_lanes.specs_of(functions, config)
+        if family in ("ekf", "ukf") and c_lockstep.enabled(config, family):    # runs in lockstep (host library only)
+            lockstep += c_lockstep.specs_of(made[family].kernels, made[family].filters, functions.for_filter(family))
         if on_part is not None:
             on_part(1 + model.filters.index(family), Bundle(model.name, list(made[family].kernels), config,
                                                              model.describe(), lanes=lanes))
@@ -92,7 +94,7 @@ def generate_validated(model: Model, config: CodegenConfig, on_part=None) -> Bun
     filters = [f for family in model.filters for f in made[family].filters]
     check_c_names(model.name, kernels, model.measurements)
     parts = (len(own),) + tuple(len(made[family].kernels) for family in model.filters)
-    return Bundle(model.name, kernels, config, model.describe(), filters, parts, lanes)
+    return Bundle(model.name, kernels, config, model.describe(), filters, parts, lanes, lockstep)
 
 
 def write_bundle(bundle: Bundle, directory: Path, key: str, generated: str, cc: str,

@@ -36,9 +36,10 @@ from .spec import CodegenConfig
 #: :func:`codegen_modules`); tests/codegen/test_build_lifecycle.py checks that none is missing.
 FRAMEWORK_MODULES = ("symkf.codegen.build_folders", "symkf.codegen.c_backend.api", "symkf.codegen.c_backend.arguments",
                      "symkf.codegen.c_backend.casadi_text",
-                     "symkf.codegen.c_backend.header", "symkf.codegen.c_backend.lanes", "symkf.codegen.c_backend.makefile",
+                     "symkf.codegen.c_backend.flatten", "symkf.codegen.c_backend.header", "symkf.codegen.c_backend.lanes",
+                     "symkf.codegen.c_backend.lockstep", "symkf.codegen.c_backend.lockstep_units", "symkf.codegen.c_backend.makefile", "symkf.codegen.c_backend.vector_c",
                      "symkf.codegen.c_backend.multi_loop", "symkf.codegen.c_backend.names",
-                     "symkf.codegen.c_backend.smooth_loop",
+                     "symkf.codegen.c_backend.smooth_loop", "symkf.codegen.c_backend.smooth_lockstep",
                      "symkf.codegen.c_backend.stack", "symkf.codegen.c_backend.template_util", "symkf.codegen.c_backend.units",
                      "symkf.codegen.compilation",
                      "symkf.codegen.compiler_pool", "symkf.codegen.discretize", "symkf.codegen.errors", "symkf.codegen.export",

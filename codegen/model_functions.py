@@ -146,6 +146,9 @@ class Propagation:
     branches: EventBranches
     prefix: str
     point_functions: dict = field(default_factory=dict, compare=False, repr=False)   # fd_at_points, increments
+    #: by name, each weight switch of :meth:`fd_at_points_weighted` and its centre-free branch
+    #: (what it calls when the centre weight is 0: the lockstep lanes, c_backend/flatten.py)
+    weight_switches: dict = field(default_factory=dict, compare=False, repr=False)
 
     def fd_at_points(self, tag: str, inputs: dict[str, ca.SX], points, centre_free: bool = False) -> ca.Function:
         """``<prefix>_fd_<tag>``(t, dt, *inputs, u, p) -> f_d at each of ``points(*inputs)`` (a list
@@ -185,6 +188,7 @@ class Propagation:
             full = self.fd_at_points(tag, inputs, points)
             free = self.fd_at_points(f"{tag}_centre_free", inputs, points, centre_free=True)
             switch = ca.Function.conditional(f"{self.prefix}_fd_{tag}_by_weight", [free], full)
+            self.weight_switches[switch.name()] = free
             w0, sym = ca.MX.sym("w0"), full.mx_in()
             self.point_functions[key] = ca.Function(
                 f"{self.prefix}_fd_{tag}_weighted", [w0, *sym], switch.call([w0 != 0, *sym]),

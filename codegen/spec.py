@@ -360,6 +360,9 @@ class Bundle:
     parts: tuple[int, ...] = ()
     #: The scalar units the host library evaluates in SIMD lanes (c_backend/lanes.py LaneSpec).
     lanes: tuple = ()
+    #: The fused steps the host library also steps in lockstep, several runs per vector
+    #: (c_backend/lockstep.py LockstepSpec).
+    lockstep: tuple = ()
 
     def part_bundles(self) -> list["Bundle"]:
         """The bundle of each part's kernels (the whole bundle if it has no parts)."""

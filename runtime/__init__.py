@@ -21,10 +21,10 @@ from .backends import CompiledBackend, StaleLibraryError, SymkfError, VirtualMac
 from .contract import DEFAULT_GATE_PROBABILITY
 from .filters import Filter
 from .runs import RunRefused, RunResult
-from .smoothing import SmoothedRun, smooth
+from .smoothing import SmoothedRun, smooth, smooth_lockstep
 
 __all__ = ["CompiledModel", "DEFAULT_GATE_PROBABILITY", "Filter", "RunRefused", "RunResult", "SmoothedRun",
-           "StaleLibraryError", "SymkfError", "load", "smooth"]
+           "StaleLibraryError", "SymkfError", "load", "smooth", "smooth_lockstep"]
 
 
 class CompiledModel:

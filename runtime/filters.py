@@ -23,7 +23,7 @@ from copy import deepcopy
 import numpy as np
 
 from symkf.codegen.spec import FilterSpec
-from . import calls, contract, multi_runs, runs, smoothing
+from . import calls, contract, lockstep_runs, multi_runs, runs, smoothing
 from .buffers import fits, kernel_roles, make_buffers
 from .contract import DEFAULT_GATE_PROBABILITY, read_only
 from .covariance_form import CholeskyForm
@@ -265,6 +265,14 @@ class Filter(FilterState):
         """:meth:`run` over a record of several measurements ({name: array}), in one compiled call:
         :func:`symkf.runtime.multi_runs.run_multi`."""
         return multi_runs.run_multi(self, times, z, q, mask, u, nan, refused)
+
+    def run_lockstep(self, times, z, measurement: str | None = None, q=None, mask=None, u=None,
+                     nan: str = "raise", refused: str = "raise") -> list:
+        """Monte Carlo runs over one clock, one per z[r] (z: (runs, N, m)), each from the filter's
+        x, P and t, which stay as they are: a list of RunResults, each what :meth:`run` returns for
+        that run, bit for bit, computed 4 runs at a time where the library has the lockstep loop
+        (:func:`symkf.runtime.lockstep_runs.run_lockstep`)."""
+        return lockstep_runs.run_lockstep(self, times, z, measurement, q, mask, u, nan, refused)
 
     def run_steps(self, dt, z, measurement: str | None = None, q=None, mask=None, u=None,
                   nan: str = "raise", refused: str = "raise", smooth: bool = False) -> RunResult:

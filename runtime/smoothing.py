@@ -156,3 +156,63 @@ def _result(filt, result: RunResult, xs: np.ndarray, Ps: np.ndarray, codes: np.n
                            smooth_status=codes)
     smoothed.__dict__["_innovations"] = {k: getattr(result, k) for k in ("y", "S", "nis", "nis_dof")}   # as the run's
     return smoothed
+
+
+def smooth_lockstep(filt, results: list, errors: str = "raise") -> list:
+    """:func:`smooth` of each of ``results`` (runs of ``filt`` over one clock with the same inputs
+    but z: :meth:`Filter.run_lockstep`'s), each bit for bit what :func:`smooth` returns for it; the
+    library's ``<smoother>_run_lockstep`` (codegen/c_backend/smooth_lockstep.py) does 4 backward
+    passes per AVX2 vector where it has one, else each run is :func:`smooth` in turn."""
+    if errors not in ("raise", "keep"):
+        raise ValueError("errors: expected 'raise' or 'keep'")
+    loop = _lockstep_loop(filt, results)
+    if loop is None:
+        return [smooth(filt, result, errors) for result in results]
+    states = [_kernel_state(filt, result) for result in results]
+    arrays = _inputs(filt._backend.kernels[filt.spec.smooth], results[0], *states[0])
+    x = np.ascontiguousarray(np.stack([s[0] for s in states]))
+    P = np.ascontiguousarray(np.stack([s[1] for s in states]))
+    status = np.ascontiguousarray(np.stack([r.status for r in results]), dtype=np.intc)
+    xs, Ps, codes = np.zeros_like(x), np.zeros_like(P), np.zeros(status.shape, np.intc)
+    loop({**arrays, "x": x, "P": P}, status, xs, Ps, codes)
+    out = []
+    for r, result in enumerate(results):
+        failed = np.flatnonzero(codes[r] != STATUS_OK)
+        if failed.size and errors == "raise":
+            raise SymkfError(f"{filt.spec.smooth}_run_lockstep", int(codes[r][failed[-1]]),
+                             f"run {r}: backward step(s) {failed[::-1][:10].tolist()} failed; "
+                             "smooth_lockstep(..., errors='keep') returns the smoothing with those rows filtered")
+        out.append(_result(filt, result, xs[r], Ps[r], codes[r]))
+    return out
+
+
+def _lockstep_loop(filt, results: list):
+    """The compiled backward lockstep loop for ``results`` (runs that share every input but their
+    histories), or None: a VM backend, a library or filter without one, runs that differ."""
+    kernel, backend = filt.spec.smooth, filt._backend
+    if not kernel:
+        raise ValueError(f"smooth: filter '{filt.family}' has no smoother (its family generates none)")
+    if (len(results) < 2 or backend.kind != "compiled" or filt._scaling is not None or filt._form is not None
+            or filt._dtype != np.float64):
+        return None
+    function = getattr(backend.lib, f"{backend.model}_{kernel}_run_lockstep", None)
+    available = getattr(backend.lib, f"{backend.model}_{kernel}_lockstep_available", None)
+    if function is None or available is None or not available() or not _same_inputs(results):
+        return None
+    info = backend.kernels[kernel]
+    names = [name for name, _ in info.inputs if name not in SMOOTHED]
+    function.argtypes = [ctypes.c_int, ctypes.c_int] + [ctypes.c_void_p] * (len(names) + 4)
+    function.restype = ctypes.c_int
+
+    def loop(arrays: dict, status, xs, Ps, codes) -> None:
+        passed = [arrays[name] for name in names]        # as _inputs made them (constants column-major)
+        function(status.shape[0], status.shape[1], *[a.ctypes.data for a in passed], status.ctypes.data,
+                 xs.ctypes.data, Ps.ctypes.data, codes.ctypes.data)
+    return loop
+
+
+def _same_inputs(results: list) -> bool:
+    """Every run recorded the same inputs (t, dt, u and the constants) as the first."""
+    first = results[0].inputs
+    return all(r.inputs.keys() == first.keys() and r.x.shape == results[0].x.shape
+               and all(np.array_equal(r.inputs[k], first[k]) for k in first) for r in results[1:])

@@ -13,6 +13,7 @@ from .api import api_unit, hash_unit, public_functions
 from .casadi_text import CasadiCode, math_block, plain_names
 from .header import precision_lines
 from .lanes import hook, lanes_file, lanes_unit
+from .lockstep_units import lockstep_units
 from .names import api_file, ascii_text, check_unit_names, generated_notice, hash_file
 from .template_util import template_text
 
@@ -27,6 +28,7 @@ def units(bundle: Bundle, content_hash: str, per_part: list[dict[str, str]] | No
     if bundle.lanes:
         out[lanes_file(model)] = lanes_unit(model, list(bundle.lanes),
                                             generated_notice(model, bundle.description.get("source", "")))
+    out.update(lockstep_units(model, list(bundle.lockstep), generated_notice(model, bundle.description.get("source", ""))))
     check_unit_names(model, out, public_functions(bundle))
     return out
 

@@ -65,6 +65,10 @@ class UkfOptions:
                                 "moves chaotic excursion runs (off by default: the library computes what the "
                                 "bundle computes)")
 
+    lockstep: bool = option(False, "the host library steps 4 Monte Carlo runs at once in AVX2 vectors "
+                                   "(Filter.run_lockstep; codegen/c_backend/lockstep.py): the scalar code's numbers "
+                                   "bit for bit; off by default: its C adds compile time to every build and edit")
+
     lanes_update: bool = option(False, "with ukf_lanes, the update's h at the sigma points in lanes too (libmvec's "
                                        "atan2, sin, cos: 18.4k instead of 23.5k instructions per launcher step; its "
                                        "round-off moves some campaign runs by up to 1e-4 relative: off by default)")
@@ -74,7 +78,18 @@ class UkfOptions:
     @classmethod
     def of(cls, config) -> "UkfOptions":
         return cls(*(bool(config.get(f"{cls.prefix}{f}", d)) for f, d in
-                     (("centre_free", True), ("lanes", False), ("lanes_update", False))))
+                     (("centre_free", True), ("lanes", False), ("lockstep", False), ("lanes_update", False))))
+
+
+@dataclass(frozen=True)
+class LockstepOptions:
+    """The host library's lockstep loop of the EKF's steps (the flight bundle has none)."""
+
+    lockstep: bool = option(False, "the host library steps 4 Monte Carlo runs at once in AVX2 vectors "
+                                   "(Filter.run_lockstep; codegen/c_backend/lockstep.py): the scalar code's numbers "
+                                   "bit for bit; off by default: its C adds compile time to every build and edit")
+
+    prefix: ClassVar[str] = "ekf_"
 
 
 # ---------------------------------------------------------------------- process noise
@@ -344,5 +359,5 @@ def ukf_kernels(model: Model, symbols: Symbols, fns: ModelFunctions) -> Family:
                                         smooth="ukf_smooth")])
 
 
-register_family("ekf", ekf_kernels, options=(IteratedOptions,))
+register_family("ekf", ekf_kernels, options=(IteratedOptions, LockstepOptions))
 register_family("ukf", ukf_kernels, long_compile=True, options=(UkfOptions,))      # f_d at the sigma points

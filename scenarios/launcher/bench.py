@@ -32,7 +32,8 @@ throughput per worker, its CPU seconds split into the compiled runs and the rest
 it ran (content hash, -O flags).
 ``--instructions`` counts, with callgrind, the instructions of one call of each part (predict,
 update, the fused step, a step inside the run loop, a backward step of the RTS smoother's
-``<filter>_smooth_run`` over that run), with where a step's instructions go
+``<filter>_smooth_run`` over that run, and a run-step of 4 runs stepped in lockstep in AVX2
+vectors: ``Filter.run_lockstep``, the campaign's loop), with where a step's instructions go
 (wrapper, run loop, propagation, h and H, predict and update kernels, libm), and the UKF step of
 the build with SIMD lanes (``ukf_lanes=True``: four sigma points at a time in AVX2 lanes; the
 default library, like the flight bundle, computes them one at a time) in the row "SIMD lanes".
@@ -56,7 +57,7 @@ from symkf.runtime.reference import ReferenceFilter
 from symkf.scenarios import callgrind, timing
 from symkf.scenarios.campaign import compiled_model
 from symkf.scenarios.report import emit
-from .campaign import TUNING, Campaign, initial_estimate, Case
+from .campaign import LOCKSTEP_BUILD, LOCKSTEP_RUNS, TUNING, Campaign, initial_estimate, Case
 from .truth import propagate, radar_track
 
 FILTERS = ("ekf", "ukf")
@@ -178,10 +179,11 @@ class CLoopProgram:
         return 1e-6 * float(wall), 1e-6 * float(cpu)
 
 
-def _compile_c_loop(directory: Path, tmp: Path) -> Path:
+def _compile_c_loop(directory: Path, tmp: Path, defines: tuple[str, ...] = ()) -> Path:
     """:data:`C_LOOP` compiled against the bundle in ``directory`` with its flags, in ``tmp``."""
+    tmp.mkdir(parents=True, exist_ok=True)
     return callgrind.compile_driver(directory, callgrind.driver_source(__package__, C_LOOP), tmp / "c_loop",
-                                    defines=("-D_POSIX_C_SOURCE=199309L",))
+                                    defines=("-D_POSIX_C_SOURCE=199309L", *defines))
 
 
 def time_compiled_step(model, family: str, work: Workload, batch: int = 100, steps: int | None = None,
@@ -336,6 +338,8 @@ def c_loop_instructions(work: Workload) -> dict[str, dict]:
         return out
     with tempfile.TemporaryDirectory() as tmp:
         exe = _compile_c_loop(directory, Path(tmp))
+        lockstep_exe = _compile_c_loop(build_model("launcher", **LOCKSTEP_BUILD).directory, Path(tmp) / "lockstep",
+                                       ("-DSYMKF_LOCKSTEP",))
         stdin = _c_loop_input(work)
         for family in FILTERS:
             counts = {part: _instructions_per_step(exe, family, part, stdin, Path(tmp)) for part in PARTS}
@@ -344,6 +348,8 @@ def c_loop_instructions(work: Workload) -> dict[str, dict]:
             for row, (part, functions) in SELF_COSTS.items():
                 parts[row] = sum(counts[part][1].get(f.format(m="launcher", f=family), 0) for f in functions)
             parts.update(step_breakdown(counts["step"][1], "launcher", family))
+            lockstep, _ = _instructions_per_step(lockstep_exe, family, "lockstep", stdin, Path(tmp))
+            parts["lockstep"] = (lockstep - parts["run"]) / LOCKSTEP_RUNS     # per run-step of LOCKSTEP_RUNS runs
             out[family] = {"instructions_per_step": parts["step"], "instructions_by_part": parts}
     return out
 
@@ -475,10 +481,12 @@ def instruction_parts_table(report: dict) -> list[str]:
     if not parts:
         return []
     lines = ["", f"{'instructions per call':<26}" + "".join(f"{f.upper():>13}" for f in FILTERS)]
-    for part in (*PARTS, *SELF_COSTS, *STEP_FUNCTIONS):
+    for part in (*PARTS, "lockstep", *SELF_COSTS, *STEP_FUNCTIONS):
         label = {"wrapper": "step: wrapper, checks", "composition": "step: composition",
-                 "loop": "run: loop, checks", "backward": "smoother: backward step"}.get(part, part)
-        lines.append(f"{label:<26}" + "".join(f"{parts[f].get(part, 0):>13,.0f}" for f in FILTERS))
+                 "loop": "run: loop, checks", "backward": "smoother: backward step",
+                 "lockstep": "run-step in lockstep"}.get(part, part)
+        lines.append(f"{label:<26}" + "".join(f"{parts[f][part]:>13,.0f}" if part in parts[f] else f"{'-':>13}"
+                                              for f in FILTERS))
     return lines
 
 

@@ -3,7 +3,8 @@
 #include <time.h>
 #include "launcher.h"
 /* stdin: x0[6] P0[36] Q[36] R[9] kappa p[6] n_base, n_base lines t z[3] q[2].
-   argv[1]: ekf|ukf, argv[2]: steps, argv[3] (optional) part: step (default), predict, update, run, backward.
+   argv[1]: ekf|ukf, argv[2]: steps, argv[3] (optional) part: step (default), predict, update, run, backward,
+   lockstep (launcher_<filter>_step_radar_run_lockstep over LANES runs of the record, each its copy, after the run).
    step/predict/update: one call of launcher_<filter>_<part>[_radar] per step; run: one call of
    launcher_<filter>_step_radar_run over all the steps; backward: that run, then the smoother's
    backward pass launcher_<filter>_smooth_run over it. The record restarts from x0, P0 at its end.
@@ -39,6 +40,35 @@ static int run(int ukf, int n, int steps) {
   return ukf ? launcher_ukf_step_radar_run(steps, RT, RDT, x0, P0, p, Q, RQ, RZ, RM, R, gate, kappa, XH, PH, SH)
              : launcher_ekf_step_radar_run(steps, RT, RDT, x0, P0, p, Q, RQ, RZ, RM, R, gate, XH, PH, SH);
 }
+#ifdef SYMKF_LOCKSTEP        /* linked against a library built with ekf_lockstep */
+#define LANES 4
+#define LOCKSTEP_STEPS 2000
+/* the host library's lockstep loop (not in the bundle's header: codegen/c_backend/lockstep.py) */
+int launcher_ekf_step_radar_run_lockstep(int n_runs, int n_steps, const double *t, const double *dt, const double *x0,
+    const double *P0, const double *u, const double *p, const double *Q, const double *q, const double *z,
+    const double *mask, const double *R, const double *gate, double *x_hist, double *P_hist, double *y_hist,
+    double *S_hist, int *status_hist);
+int launcher_ukf_step_radar_run_lockstep(int n_runs, int n_steps, const double *t, const double *dt, const double *x0,
+    const double *P0, const double *u, const double *p, const double *Q, const double *q, const double *z,
+    const double *mask, const double *R, const double *gate, const double *kappa, double *x_hist, double *P_hist,
+    double *y_hist, double *S_hist, int *status_hist);
+static double LZ[LANES * LOCKSTEP_STEPS * 3], LM[LANES * LOCKSTEP_STEPS * 3], LX[LANES * LOCKSTEP_STEPS * 6];
+static double LP[LANES * LOCKSTEP_STEPS * 36], LY[LANES * LOCKSTEP_STEPS * 3], LS[LANES * LOCKSTEP_STEPS * 9];
+static int LST[LANES * LOCKSTEP_STEPS];
+static int lockstep(int ukf, int n, int steps) {
+  int r, i, code;
+  if (steps > LOCKSTEP_STEPS) return -1;
+  code = run(ukf, n, steps);               /* fills the record (and runs it once: the same for every count) */
+  for (r = 0; r < LANES; ++r)
+    for (i = 0; i < 3 * steps; ++i) { LZ[r * 3 * steps + i] = RZ[i]; LM[r * 3 * steps + i] = 1; }
+  if (ukf) return code | launcher_ukf_step_radar_run_lockstep(LANES, steps, RT, RDT, x0, P0, 0, p, Q, RQ, LZ, LM, R,
+                                                              gate, &kappa, LX, LP, LY, LS, LST);
+  return code | launcher_ekf_step_radar_run_lockstep(LANES, steps, RT, RDT, x0, P0, 0, p, Q, RQ, LZ, LM, R, gate,
+                                                     LX, LP, LY, LS, LST);
+}
+#else
+static int lockstep(int ukf, int n, int steps) { (void)ukf; (void)n; (void)steps; return -1; }
+#endif
 static int backward(int ukf, int steps) {
   return ukf ? launcher_ukf_smooth_run(steps, RT, RDT, XH, PH, p, Q, kappa, SH, XS, PS, SS)
              : launcher_ekf_smooth_run(steps, RT, RDT, XH, PH, p, Q, SH, XS, PS, SS);
@@ -51,9 +81,9 @@ int main(int argc, char **argv) {
   ukf = argv[1][0] == 'u';
   if (sscanf(argv[2], "%d", &steps) != 1 || scanf("%d", &n) != 1 || n > 20000) return 2;
   for (i = 0; i < n; ++i) if (!rd(&T[i], 1) || !rd(&Z[3 * i], 3) || !rd(&QS[2 * i], 2)) return 2;
-  if (part == 'r' || part == 'b') {
+  if (part == 'r' || part == 'b' || part == 'l') {
     start = now(), cpu_start = cpu_now();
-    code = run(ukf, n, steps);
+    code = part == 'l' ? lockstep(ukf, n, steps) : run(ukf, n, steps);
     if (part == 'b' && code == 0) code = backward(ukf, steps);
     printf("%.6f %d %.6f\n", 1e6 * (now() - start) / steps, code, 1e6 * (cpu_now() - cpu_start) / steps);
     return 0;

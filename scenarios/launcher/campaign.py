@@ -1,10 +1,11 @@
 """KSLV-I EKF-vs-UKF Monte Carlo campaign (paper 004, section 4), the whole run in C.
 
 For each case (radar rate x initial error) and each Monte Carlo run: radar noise is drawn once
-and fed to *both* filters; each filter runs the whole flight in one call of the generated
-``<filter>_step_radar_run`` loop (C, GIL released), and runs are spread over all cores with
-threads. Errors are accumulated on the fly (eq (8), eq (11), NEES), for each filter and for its
-fixed-interval smoothing (``ekf_rts``, ``ukf_rts``: the generated backward pass over the run).
+and fed to *both* filters; each filter runs the whole flight in the generated C, 4 runs at a
+time in AVX2 lanes (``Filter.run_lockstep``: each run's numbers are a run of its own, bit for bit;
+GIL released), and tasks are spread over all cores with threads. Errors are accumulated on the
+fly (eq (8), eq (11), NEES), for each filter and for its fixed-interval smoothing (``ekf_rts``,
+``ukf_rts``: the generated backward pass over the run, 4 at a time too: ``smooth_lockstep``).
 
 Two named filter configurations (``PRESETS``, ``--filters``), each a codegen configuration
 (its own library, through ``load("launcher", **overrides)``) plus a tuning; the paper gives none:
@@ -46,7 +47,7 @@ from symkf.codegen import make_config
 from symkf.codegen.model_functions import ModelFunctions
 from symkf.models import get_model
 from symkf.models import launcher as L
-from symkf.runtime import smooth
+from symkf.runtime import smooth_lockstep
 from symkf.scenarios.campaign import ModelKey, Task, chunks, compiled_model, model_key, run_campaign, run_rng
 from symkf.scenarios.consistency import chi2_band
 from symkf.scenarios.metrics import ErrorAccumulator, nees, state_error, whole_flight_mean
@@ -163,6 +164,12 @@ def flight_times(rate_hz: int, duration: float) -> np.ndarray:
 #: A task returns its sums (about 1.7 MB for a whole 20 Hz flight, whatever its run count), so
 #: larger tasks ship less per run; 20 keeps 2 workers busy to the end of a 100-run case.
 CHUNK_RUNS = 20
+#: The campaign's library steps its runs in lockstep (codegen options; off in the default build,
+#: whose edit loop they would slow): the same numbers as one run at a time, bit for bit.
+LOCKSTEP_BUILD = {"ekf_lockstep": True, "ukf_lockstep": True}
+#: Runs a filter and its smoother step at once (Filter.run_lockstep, smooth_lockstep: 4 AVX2 lanes):
+#: the same numbers as one run at a time, the histories of 4 runs in memory at once.
+LOCKSTEP_RUNS = 4
 #: Per-run summary columns (``CaseResult.per_run[family]``, one row per run, in run order).
 PER_RUN_COLUMNS = ("run", "failed_steps", "diverged", "excursion", "mean_nees",
                    *(f"mean_sq_error_{s}" for s in STATE_NAMES), *(f"final_error_{s}" for s in STATE_NAMES))
@@ -227,24 +234,29 @@ def run_chunk(key: ModelKey, case: Case, seed: int, runs: tuple[int, int], durat
         return {f: ErrorAccumulator(len(times), 6, NEES_STRIDE) for f in ESTIMATES}
     out = ChunkResult(accumulators(), accumulators(), {f: [] for f in ESTIMATES}, {f: 0.0 for f in ESTIMATES})
     filters = {family: make_filter(model, family, x0, P0, tuning, times[0]) for family in FILTERS}
-    for run in range(*runs):
-        z = measurements(seed, case, run, track)
+    for group in chunks_of(range(*runs), LOCKSTEP_RUNS):
+        z = np.stack([measurements(seed, case, run, track) for run in group])
         for family, f in filters.items():
-            f.x, f.P, f.t = x0, P0, times[0]     # a run reads x, P, t (and the tuning, unchanged) from the filter
             start, cpu = time.perf_counter(), time.thread_time()
-            result = f.run(times, z, measurement, q=q)
+            results = f.run_lockstep(times, z, measurement, q=q)     # each run from the filter's x0, P0, t0
             out.wall_s[family] += time.perf_counter() - start
             out.cpu_s[family] += time.thread_time() - cpu
             start, cpu = time.perf_counter(), time.thread_time()
-            smoothed = smooth(f, result, errors="keep")
+            smoothings = smooth_lockstep(f, results, errors="keep")
             out.wall_s[f"{family}_rts"] += time.perf_counter() - start
             out.cpu_s[f"{family}_rts"] += time.thread_time() - cpu
-            _add_run(out, family, run, truth, result.x, result.P, np.count_nonzero(result.status))
-            _add_run(out, f"{family}_rts", run, truth, smoothed.x_smooth, smoothed.P_smooth,
-                     np.count_nonzero(smoothed.smooth_status))
+            for run, result, smoothed in zip(group, results, smoothings):
+                _add_run(out, family, run, truth, result.x, result.P, np.count_nonzero(result.status))
+                _add_run(out, f"{family}_rts", run, truth, smoothed.x_smooth, smoothed.P_smooth,
+                         np.count_nonzero(smoothed.smooth_status))
     out.per_run = {f: np.array(rows, dtype=float).reshape(-1, len(PER_RUN_COLUMNS)) for f, rows in out.per_run.items()}
     out.task_cpu_s = time.thread_time() - task_cpu
     return out
+
+
+def chunks_of(runs: range, size: int) -> list[range]:
+    """``runs`` in consecutive ranges of ``size`` (the last may be shorter)."""
+    return [runs[i:i + size] for i in range(0, len(runs), size)]
 
 
 def _add_run(out: ChunkResult, estimate: str, run: int, truth: np.ndarray, x: np.ndarray, P: np.ndarray,
@@ -283,7 +295,7 @@ class Campaign:
         self.cases = [Case(rate, init) for rate in rates for init in ("small", "large")]
         self.workers, self.scheduler = workers, scheduler
         self.progress = progress or (lambda done, total: None)
-        self.codegen = {**PRESETS[preset]["codegen"], **(build or {})}
+        self.codegen = {**LOCKSTEP_BUILD, **PRESETS[preset]["codegen"], **(build or {})}
         self.model_key = model_key("launcher", **self.codegen)     # one library per configuration
         self.tuning = {**PRESETS[preset]["tuning"], **(tuning or {})}
         self.stats = None
