@@ -25,6 +25,7 @@ import casadi as ca
 
 from ..discretize import event_in_step
 from ..spec import STATUS_ARGS, STATUS_GATED, STATUS_OK, Kernel
+from .api import param_list
 from .arguments import passing, sanitised_z
 from .flatten import Flattener, Substitute
 from .vector_c import PRELUDE, WIDTH, vector_body
@@ -32,6 +33,8 @@ from .vector_c import PRELUDE, WIDTH, vector_body
 
 #: Per-step inputs that each run has its own of (the rest of a run's inputs are shared).
 PER_RUN = ("z", "mask")
+#: What the scalar step of lane l at step k reads for t, dt and the state.
+STEP_INPUTS = {"t": "t[k]", "dt": "dt[k]", "x": "xs[l]", "P": "Ps[l]"}
 #: Flags of the lockstep unit in the library (AVX2 without FMA: the scalar code's roundings).
 UNIT_FLAGS = ["-DSYMKF_LANES", "-O2", "-ffp-contract=off"]
 
@@ -180,38 +183,31 @@ def lockstep_params(spec: LockstepSpec) -> list[str]:
     return params + ["int *status_hist"]
 
 
-def _scalar_call(model: str, kernel: Kernel) -> str:
-    """The checked scalar step on lane l's inputs, its outputs into the lane's history rows."""
-    sizes = {a.name: a.size for a in kernel.inputs}
-    where = {"t": "t[k]", "dt": "dt[k]", "x": "xs[l]", "P": "Ps[l]"}
+def scalar_call(model: str, kernel: Kernel, where: dict[str, str], step: str, outputs: list[str],
+                per_run: str | None = None) -> str:
+    """A call of the checked scalar step ``<model>_<kernel>``: the inputs in ``where`` as given,
+    per-run inputs at row ``per_run`` of theirs, per-step inputs at ``step``, constants as they are
+    (a scalar one by value); ``outputs``: where it writes."""
     args = []
     for a in kernel.inputs:
         how = passing(a, kernel)
         if how == "omit":
             continue
         if a.name in where:
-            expr = where[a.name]
-        elif a.name in PER_RUN:
-            expr = f"{a.name} + ((long) run[l] * n_steps + k) * {sizes[a.name]}"
+            args.append(where[a.name])
+            continue
+        if per_run and a.name in PER_RUN:
+            expr = f"{a.name} + ({per_run}) * {a.size}"
         elif a.name in kernel.per_step:
-            expr = f"{a.name} + (long) k * {a.size}"
+            expr = f"{a.name} + (long) ({step}) * {a.size}"
         else:
             expr = a.name
-        args.append(f"*({expr})" if how == "value" and a.name not in ("t", "dt") else expr)
-    outs = [f"{a.name}_row" for a in kernel.outputs[:-1] if a.size]
-    return f"{model}_{kernel.name}({', '.join(args + outs)})"
+        args.append(f"*({expr})" if how == "value" else expr)
+    return f"{model}_{kernel.name}({', '.join(args + outputs)})"
 
 
 def scalar_prototype(model: str, kernel: Kernel) -> str:
-    params = []
-    for a in kernel.inputs:
-        how = passing(a, kernel)
-        if how == "value":
-            params.append(f"double {a.name}")
-        elif how == "pointer":
-            params.append(f"const double *{a.name}")
-    params += [f"double *{a.name}_out" for a in kernel.outputs[:-1] if a.size]
-    return f"int {model}_{kernel.name}({', '.join(params)});   /* {model}_api.c: the checked scalar step */"
+    return f"int {model}_{kernel.name}({', '.join(param_list(kernel))});   /* {model}_api.c: the checked scalar step */"
 
 
 def vector_function(name: str, fn: ca.Function) -> list[str]:
@@ -299,6 +295,7 @@ def _gather(kernel: Kernel) -> list[str]:
 def _lane_result(model: str, kernel: Kernel) -> list[str]:
     """Lane l's step k: its lanes' result when clean, else the scalar step; then the state kept or advanced."""
     sizes, outs = {a.name: a.size for a in kernel.inputs}, {a.name: a.size for a in kernel.outputs}
+    outputs = [f"{a.name}_row" for a in kernel.outputs[:-1] if a.size]
     return ["        const long row = (long) run[l] * n_steps + k;",
             *[f"        double *{n}_row = {n}_hist + row * {outs[n]};" for n in ("x", "P", "y", "S")],
             "        int code;",
@@ -310,7 +307,7 @@ def _lane_result(model: str, kernel: Kernel) -> list[str]:
             *[f"          for (i = 0; i < {outs[n]}; ++i) {n}_row[i] = out_{n}[i][l];" for n in ("x", "P", "y", "S")],
             f"          code = {STATUS_OK};",
             "        } else {",
-            f"          code = {_scalar_call(model, kernel)};",
+            f"          code = {scalar_call(model, kernel, STEP_INPUTS, 'k', outputs, '(long) run[l] * n_steps + k')};",
             "        }",
             "        status_hist[row] = code;",
             "        if (code == SYMKF_LOCKSTEP_OK || code == SYMKF_LOCKSTEP_GATED) {",

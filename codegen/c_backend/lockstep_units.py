@@ -25,6 +25,7 @@ def lockstep_unit(model: str, spec: LockstepSpec, notice: str) -> str:
         f"typedef int {name}_lockstep_unit;       /* (a unit is never empty: ISO C) */", "",
         "#if defined(SYMKF_LANES) && defined(__GNUC__) && defined(__x86_64__)",
         PRELUDE,
+        "typedef double casadi_real;          /* (the API's scalar type: lockstep is double only) */",
         f"#define SYMKF_LOCKSTEP_OK {STATUS_OK}",
         f"#define SYMKF_LOCKSTEP_GATED {STATUS_GATED}",
         "static int symkf_lockstep_finite_value(double v) { unsigned long long b; memcpy(&b, &v, 8); "

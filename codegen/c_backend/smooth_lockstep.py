@@ -11,8 +11,7 @@ and codes are ``<kernel>_run``'s bit for bit.
 from __future__ import annotations
 
 from ..spec import STATUS_ARGS, STATUS_NONFINITE, STATUS_OK, Kernel
-from .arguments import passing
-from .lockstep import LockstepSpec, scalar_prototype, vector_function
+from .lockstep import LockstepSpec, scalar_call, scalar_prototype, vector_function
 from .vector_c import WIDTH
 
 FILTERED, SMOOTHED = ("x", "P"), ("xs", "Ps")
@@ -30,22 +29,8 @@ def smooth_lockstep_params(kernel: Kernel) -> list[str]:
     return params + ["const int *status_hist", "double *xs_hist", "double *Ps_hist", "int *smooth_status"]
 
 
-def _scalar_call(model: str, kernel: Kernel) -> str:
-    """The checked scalar backward step of lane l at row k, into smoothed row k."""
-    where = {"t": "t[k + 1]", "dt": "dt[k + 1]", "x": "x_row", "P": "P_row", "xs": "xs_next", "Ps": "Ps_next"}
-    args = []
-    for a in kernel.inputs:
-        how = passing(a, kernel)
-        if how == "omit":
-            continue
-        if a.name in where:
-            args.append(where[a.name])
-        elif a.name in kernel.per_step:
-            expr = f"{a.name} + (long) (k + 1) * {a.size}"
-            args.append(f"*({expr})" if how == "value" else expr)
-        else:
-            args.append(f"*{a.name}" if how == "value" else a.name)
-    return f"{model}_{kernel.name}({', '.join(args + ['xs_row', 'Ps_row'])})"
+#: What the scalar backward step of lane l at row k reads for t, dt, the filtered and smoothed rows.
+BACKWARD_INPUTS = {"t": "t[k + 1]", "dt": "dt[k + 1]", "x": "x_row", "P": "P_row", "xs": "xs_next", "Ps": "Ps_next"}
 
 
 def smooth_lockstep_function(model: str, spec: LockstepSpec) -> str:
@@ -116,7 +101,7 @@ def smooth_lockstep_function(model: str, spec: LockstepSpec) -> str:
         f"          for (i = 0; i < {nP}; ++i) Ps_row[i] = out_Ps[i][l];",
         f"          code = {STATUS_OK};",
         "        } else {",
-        f"          code = {_scalar_call(model, kernel)};",
+        f"          code = {scalar_call(model, kernel, BACKWARD_INPUTS, 'k + 1', ['xs_row', 'Ps_row'])};",
         f"          if (code != {STATUS_OK}) {{       /* the filtered row k */",
         f"            memcpy(xs_row, x_row, {n} * sizeof(double)); memcpy(Ps_row, P_row, {nP} * sizeof(double));",
         f"            if (first_error == {STATUS_OK}) first_error = code;",

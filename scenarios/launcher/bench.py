@@ -349,7 +349,9 @@ def c_loop_instructions(work: Workload) -> dict[str, dict]:
                 parts[row] = sum(counts[part][1].get(f.format(m="launcher", f=family), 0) for f in functions)
             parts.update(step_breakdown(counts["step"][1], "launcher", family))
             lockstep, _ = _instructions_per_step(lockstep_exe, family, "lockstep", stdin, Path(tmp))
+            both, _ = _instructions_per_step(lockstep_exe, family, "smooth-lockstep", stdin, Path(tmp))
             parts["lockstep"] = (lockstep - parts["run"]) / LOCKSTEP_RUNS     # per run-step of LOCKSTEP_RUNS runs
+            parts["backward_lockstep"] = (both - lockstep) / LOCKSTEP_RUNS
             out[family] = {"instructions_per_step": parts["step"], "instructions_by_part": parts}
     return out
 
@@ -481,10 +483,11 @@ def instruction_parts_table(report: dict) -> list[str]:
     if not parts:
         return []
     lines = ["", f"{'instructions per call':<26}" + "".join(f"{f.upper():>13}" for f in FILTERS)]
-    for part in (*PARTS, "lockstep", *SELF_COSTS, *STEP_FUNCTIONS):
+    for part in (*PARTS, "lockstep", "backward_lockstep", *SELF_COSTS, *STEP_FUNCTIONS):
         label = {"wrapper": "step: wrapper, checks", "composition": "step: composition",
                  "loop": "run: loop, checks", "backward": "smoother: backward step",
-                 "lockstep": "run-step in lockstep"}.get(part, part)
+                 "lockstep": "run-step in lockstep",
+                 "backward_lockstep": "backward step, lockstep"}.get(part, part)
         lines.append(f"{label:<26}" + "".join(f"{parts[f][part]:>13,.0f}" if part in parts[f] else f"{'-':>13}"
                                               for f in FILTERS))
     return lines

@@ -4,7 +4,8 @@
 #include "launcher.h"
 /* stdin: x0[6] P0[36] Q[36] R[9] kappa p[6] n_base, n_base lines t z[3] q[2].
    argv[1]: ekf|ukf, argv[2]: steps, argv[3] (optional) part: step (default), predict, update, run, backward,
-   lockstep (launcher_<filter>_step_radar_run_lockstep over LANES runs of the record, each its copy, after the run).
+   lockstep (launcher_<filter>_step_radar_run_lockstep over LANES runs of the record, each its copy, after the run),
+   smooth-lockstep (that, then launcher_<filter>_smooth_run_lockstep over the LANES runs).
    step/predict/update: one call of launcher_<filter>_<part>[_radar] per step; run: one call of
    launcher_<filter>_step_radar_run over all the steps; backward: that run, then the smoother's
    backward pass launcher_<filter>_smooth_run over it. The record restarts from x0, P0 at its end.
@@ -52,6 +53,14 @@ int launcher_ukf_step_radar_run_lockstep(int n_runs, int n_steps, const double *
     const double *P0, const double *u, const double *p, const double *Q, const double *q, const double *z,
     const double *mask, const double *R, const double *gate, const double *kappa, double *x_hist, double *P_hist,
     double *y_hist, double *S_hist, int *status_hist);
+int launcher_ekf_smooth_run_lockstep(int n_runs, int n_steps, const double *t, const double *dt,
+    const double *x_hist, const double *P_hist, const double *u, const double *p, const double *Q,
+    const int *status_hist, double *xs_hist, double *Ps_hist, int *smooth_status);
+int launcher_ukf_smooth_run_lockstep(int n_runs, int n_steps, const double *t, const double *dt,
+    const double *x_hist, const double *P_hist, const double *u, const double *p, const double *Q,
+    const double *kappa, const int *status_hist, double *xs_hist, double *Ps_hist, int *smooth_status);
+static double LXS[LANES * LOCKSTEP_STEPS * 6], LPS[LANES * LOCKSTEP_STEPS * 36];
+static int LSS[LANES * LOCKSTEP_STEPS];
 static double LZ[LANES * LOCKSTEP_STEPS * 3], LM[LANES * LOCKSTEP_STEPS * 3], LX[LANES * LOCKSTEP_STEPS * 6];
 static double LP[LANES * LOCKSTEP_STEPS * 36], LY[LANES * LOCKSTEP_STEPS * 3], LS[LANES * LOCKSTEP_STEPS * 9];
 static int LST[LANES * LOCKSTEP_STEPS];
@@ -66,8 +75,15 @@ static int lockstep(int ukf, int n, int steps) {
   return code | launcher_ekf_step_radar_run_lockstep(LANES, steps, RT, RDT, x0, P0, 0, p, Q, RQ, LZ, LM, R, gate,
                                                      LX, LP, LY, LS, LST);
 }
+static int smooth_lockstep(int ukf, int n, int steps) {
+  int code = lockstep(ukf, n, steps);
+  if (code) return code;
+  return ukf ? launcher_ukf_smooth_run_lockstep(LANES, steps, RT, RDT, LX, LP, 0, p, Q, &kappa, LST, LXS, LPS, LSS)
+             : launcher_ekf_smooth_run_lockstep(LANES, steps, RT, RDT, LX, LP, 0, p, Q, LST, LXS, LPS, LSS);
+}
 #else
 static int lockstep(int ukf, int n, int steps) { (void)ukf; (void)n; (void)steps; return -1; }
+static int smooth_lockstep(int ukf, int n, int steps) { (void)ukf; (void)n; (void)steps; return -1; }
 #endif
 static int backward(int ukf, int steps) {
   return ukf ? launcher_ukf_smooth_run(steps, RT, RDT, XH, PH, p, Q, kappa, SH, XS, PS, SS)
@@ -76,14 +92,14 @@ static int backward(int ukf, int steps) {
 int main(int argc, char **argv) {
   double dt = 0.05, batches[1000], cpu_batches[1000], start, cpu_start;
   int n, i, k, b, nb, steps, ukf, code = 0;
-  char part = argc > 3 ? argv[3][0] : 's';
+  char part = argc > 3 ? (strcmp(argv[3], "smooth-lockstep") ? argv[3][0] : 'm') : 's';
   if (argc < 3 || !rd(x0, 6) || !rd(P0, 36) || !rd(Q, 36) || !rd(R, 9) || !rd(&kappa, 1) || !rd(p, 6)) return 2;
   ukf = argv[1][0] == 'u';
   if (sscanf(argv[2], "%d", &steps) != 1 || scanf("%d", &n) != 1 || n > 20000) return 2;
   for (i = 0; i < n; ++i) if (!rd(&T[i], 1) || !rd(&Z[3 * i], 3) || !rd(&QS[2 * i], 2)) return 2;
-  if (part == 'r' || part == 'b' || part == 'l') {
+  if (part == 'r' || part == 'b' || part == 'l' || part == 'm') {
     start = now(), cpu_start = cpu_now();
-    code = part == 'l' ? lockstep(ukf, n, steps) : run(ukf, n, steps);
+    code = part == 'l' ? lockstep(ukf, n, steps) : part == 'm' ? smooth_lockstep(ukf, n, steps) : run(ukf, n, steps);
     if (part == 'b' && code == 0) code = backward(ukf, steps);
     printf("%.6f %d %.6f\n", 1e6 * (now() - start) / steps, code, 1e6 * (cpu_now() - cpu_start) / steps);
     return 0;

@@ -25,6 +25,7 @@ LAUNCHER = str(HERE / "launcher_square_root_model.py")
 LEO = str(HERE / "leo_od_model.py")
 sys.path.insert(0, str(HERE))
 import leo_od_model as leo  # noqa: E402
+from compiled_cases import compiled_cases  # noqa: E402
 
 PAIRS = (("srukf", "ukf"), ("srekf", "ekf"))
 
@@ -61,10 +62,7 @@ CASES = {"launcher": launcher_case, "leo": leo_case}
 
 @pytest.fixture(scope="module")
 def cases():
-    made = {name: make() for name, make in CASES.items()}
-    for case in made.values():
-        case["compiled"] = load(case["model"], backend="compiled")
-    return made
+    return compiled_cases(CASES)
 
 
 def make(case, family, compiled=None):

@@ -20,6 +20,7 @@ from symkf.models import attitude as A
 from symkf.models import marg_mekf as M
 from symkf.runtime import Filter, load
 from symkf.runtime.reference import SquareRootManifoldReference
+from compiled_cases import compiled_cases
 
 HERE = Path(__file__).resolve().parent.parent / "models"
 ATTITUDE = str(HERE / "attitude_square_root_model.py")
@@ -62,10 +63,7 @@ CASES = {"attitude": attitude_case, "marg": marg_case}
 
 @pytest.fixture(scope="module")
 def cases():
-    made = {name: make() for name, make in CASES.items()}
-    for case in made.values():
-        case["compiled"] = load(case["model"], backend="compiled")
-    return made
+    return compiled_cases(CASES)
 
 
 def make(case, family, compiled=None):

@@ -104,7 +104,8 @@ def test_paper_like_preset_scales_the_mekf_process_noise_only(tmp_path):
     assert paper["filters"]["ukf"]["attitude_rms_deg"] == pytest.approx(correct["filters"]["ukf"]["attitude_rms_deg"])
     for name in ("mekf", "ukf"):
         metrics = paper["filters"][name]
-        assert metrics["transient_rms_deg_first_1000s"] <= metrics["transient_rms_deg_first_300s"]
+        assert metrics["transient_rms_deg_first_300s"] > 0
+        assert "transient_rms_deg_first_1000s" not in metrics      # a 600 s run has no 1000 s window
         assert 0 < metrics["time_to_1deg_s"] <= metrics["time_to_0.1deg_s"]
 
 
