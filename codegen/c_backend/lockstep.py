@@ -326,11 +326,13 @@ def _per_run_lines(kernel: Kernel, sanitised: bool) -> list[str]:
     for n in PER_RUN:
         if n in sizes and sizes[n]:
             lines.append(f"        const double *{n}_at = {n} + ((long) run[l] * n_steps + k) * {sizes[n]};")
+    # a value that is not finite makes its lane the scalar step's, and enters the lanes as 0
+    # (no NaN or Inf in the vector arithmetic: no floating-point exception there)
     if "mask" in sizes and sizes["mask"]:
-        lines.append(f"        lanes_ok[l] = symkf_lockstep_finite(mask_at, {sizes['mask']});")
-        lines.append(f"        for (i = 0; i < {sizes['mask']}; ++i) in_mask[i][l] = mask_at[i];")
+        lines.append(f"        for (i = 0; i < {sizes['mask']}; ++i) {{ const int ok = symkf_lockstep_finite_value("
+                     "mask_at[i]); in_mask[i][l] = ok ? mask_at[i] : 0.; lanes_ok[l] &= ok; }")
     if "z" in sizes and sizes["z"]:
         value = "mask_at[i] > 0.5 ? z_at[i] : 0." if sanitised else "z_at[i]"
-        lines.append(f"        for (i = 0; i < {sizes['z']}; ++i) {{ in_z[i][l] = {value}; "
-                     "lanes_ok[l] = lanes_ok[l] && symkf_lockstep_finite_value(in_z[i][l]); }")
+        lines.append(f"        for (i = 0; i < {sizes['z']}; ++i) {{ const double v = {value}; "
+                     "const int ok = symkf_lockstep_finite_value(v); in_z[i][l] = ok ? v : 0.; lanes_ok[l] &= ok; }")
     return lines
