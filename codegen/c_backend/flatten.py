@@ -3,7 +3,7 @@
 A kernel's SX algorithm calls the model's functions (f_d and its Jacobian, h and its Jacobian,
 f_d at the sigma points), which are written once in C and called (``never_inline``). The lockstep
 run loop (c_backend/lockstep.py) evaluates a whole filter step for several Monte Carlo runs at
-once, so it needs the step as one straight-line algorithm: :func:`flat` re-plays a function's
+once, so it needs the step as one straight-line algorithm: :meth:`Flattener.flat` re-plays a function's
 instructions operation by operation (``SX.binary``/``SX.unary``: the same IEEE operations on the
 same operands, so the same numbers) and a call by re-playing the called function on the caller's
 operands.

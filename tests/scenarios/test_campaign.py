@@ -238,11 +238,11 @@ def test_station_parameters_per_step_are_the_model_s_rows():
 
 def test_a_campaign_on_a_whole_o3_build_gives_the_default_build_s_numbers(launcher_compiled):
     """Campaign(build=...) runs another build folder (here every unit at -O3, IEEE only) with the
-    same per-run results, bit for bit, as the model's default build (no options added)."""
+    same per-run results, bit for bit, as the campaign's default build (its lockstep loops only)."""
     o3 = C.Campaign(2, SEED, rates=(20,), duration=30.0, build={"optimization": "-O3 -fno-math-errno"})
     default = C.Campaign(2, SEED, rates=(20,), duration=30.0)
-    assert dict(default.model_key.overrides) == {}
-    assert dict(o3.model_key.overrides) == {"optimization": "-O3 -fno-math-errno"}
+    assert dict(default.model_key.overrides) == C.LOCKSTEP_BUILD
+    assert dict(o3.model_key.overrides) == {**C.LOCKSTEP_BUILD, "optimization": "-O3 -fno-math-errno"}
     assert o3.model_key.content_hash != default.model_key.content_hash
     for a, b in zip(o3.run(), default.run()):
         for f in C.FILTERS:

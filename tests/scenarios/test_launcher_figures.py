@@ -70,6 +70,7 @@ def test_symkf_plot_redraws_the_saved_figures_without_a_filter(tmp_path, launche
     monkeypatch.setattr(campaign.Campaign, "run", lambda self: pytest.fail("symkf plot ran a campaign"))
     monkeypatch.setattr(campaign, "run_chunk", lambda *a: pytest.fail("symkf plot ran a filter"))
     monkeypatch.setattr(filters.Filter, "run", lambda *a, **k: pytest.fail("symkf plot ran a filter"))
+    monkeypatch.setattr(filters.Filter, "run_lockstep", lambda *a, **k: pytest.fail("symkf plot ran a filter"))
     assert main(["plot", str(out), "--out", str(again)]) == 0
     for name in ("fig_velocity_rms.png", "fig_radius_rms.png", "fig_nees.png", "fig_smoother_rms.png"):
         assert (again / name).read_bytes() == (out / name).read_bytes(), name
