@@ -40,6 +40,11 @@ class SmoothedRun(RunResult):
     P_smooth: np.ndarray = None        # (N, n, n)
     smooth_status: np.ndarray = None   # (N,) int: 0 or the SYMKF_ERR_* code of backward step k
 
+    def _innovation(self, key: str):
+        """The forward run's (computed when first read, as the run's own)."""
+        forward = self.__dict__.get("_forward")
+        return forward._innovation(key) if forward is not None else super()._innovation(key)
+
 
 def smooth(filt, result: RunResult, errors: str = "raise") -> SmoothedRun:
     """The fixed-interval smoothing of ``result``, a run of ``filt`` (``Filter.run`` or ``run_steps``).
@@ -154,7 +159,7 @@ def _result(filt, result: RunResult, xs: np.ndarray, Ps: np.ndarray, codes: np.n
     forward = {f.name: getattr(result, f.name) for f in fields(RunResult)}
     smoothed = SmoothedRun(**forward, x_smooth=np.asarray(xs, dtype=float), P_smooth=np.asarray(P_smooth, dtype=float),
                            smooth_status=codes)
-    smoothed.__dict__["_innovations"] = {k: getattr(result, k) for k in ("y", "S", "nis", "nis_dof")}   # as the run's
+    smoothed.__dict__["_forward"] = result           # its y, S, nis: the run's, when first read
     return smoothed
 
 
