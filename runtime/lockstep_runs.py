@@ -40,7 +40,7 @@ def run_lockstep(filt, times, z, measurement: str | None = None, q=None, mask=No
     loop = _lockstep_loop(filt, name)
     results = None
     if loop is not None and given:
-        results = loop(per_step, [runs.series(filt, name, times.size, g, u, nan) for g in given])
+        results = loop(per_step, [_checked(filt, name, times.size, g, u, nan, r) for r, g in enumerate(given)])
     if results is None:                        # no lockstep loop here (or it declined: no AVX2 at run time)
         return _one_by_one(filt, name, per_step, given, u, nan, refused)
     _warn_default_gate(filt, name, results)
@@ -49,6 +49,14 @@ def run_lockstep(filt, times, z, measurement: str | None = None, q=None, mask=No
             if result.refused_steps.size:
                 raise runs.RunRefused(f"{filt.family} run_lockstep '{name}' (run {r})", result)
     return results
+
+
+def _checked(filt, name: str, n_steps: int, given: dict, u, nan: str, run: int) -> dict:
+    """Run ``run``'s arrays checked by the rules of one run; an error names the run."""
+    try:
+        return runs.series(filt, name, n_steps, given, u, nan)
+    except ValueError as exc:
+        raise ValueError(f"run {run}: {exc}") from None
 
 
 def _masks(mask, shape: tuple) -> list:
