@@ -9,7 +9,8 @@ it is called (a filter step calls its predict and update units, both predicts ca
 edit recompiles only the functions whose code changed (:func:`.units.function_units`) and the
 units compile in parallel. Function units include nothing of ours (their text is all that
 determines their object); their entry points are ``SYMKF_INTERNAL`` (hidden: ``nm -D lib<model>.so`` lists
-only the header's API). For each kernel (:mod:`.api`):
+only the header's API, and a build with ``ekf_lockstep``/``ukf_lockstep`` also the host library's
+``_run_lockstep`` loops of :mod:`.lockstep`, which the bundle's Makefile compiles to nothing). For each kernel (:mod:`.api`):
 
 - ``int <model>_<kernel>(inputs..., outputs...)``: the public function. Scalar inputs (t, dt,
   kappa, a one-component mask) are passed by value, arrays as ``const casadi_real name[size]``,

@@ -273,7 +273,7 @@ def summarize(data: dict) -> dict:
         filters["mekf"]["bias_rms_rad_s"]
     rts, mekf_row = filters["mekf_rts"], filters["mekf"]
     rts_le_filter = {key: rts[key] <= mekf_row[key] for key in ("attitude_rms_deg", "bias_rms_rad_s",
-                                                                "transient_rms_deg_first_300s")}
+                                                                "transient_rms_deg_first_300s") if key in rts}
     return {"filters": filters, "ukf_improvement_percent": float(improvement),
             "ukf_bias_improvement_percent": float(bias_improvement), "rts_le_filter": rts_le_filter}
 
