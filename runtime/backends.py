@@ -165,6 +165,13 @@ class CompiledBackend:
         return BoundCall(kernel, function, ctypes.byref(pointers), keep_alive=(pointers, buffers),
                          c_address=ctypes.cast(function, ctypes.c_void_p).value, c_args=ctypes.addressof(pointers))
 
+    def lockstep_function(self, kernel: str):
+        """``<model>_<kernel>_run_lockstep`` (codegen/c_backend/lockstep.py) if the library has it and
+        this CPU can run it (its ``_lockstep_available``), else None."""
+        function = getattr(self.lib, f"{self.model}_{kernel}_run_lockstep", None)
+        available = getattr(self.lib, f"{self.model}_{kernel}_lockstep_available", None)
+        return function if function is not None and available is not None and available() else None
+
     def run_function(self, kernel: str, diagnostics: bool = False):
         """``<model>_<kernel>_run`` as ``run(n_steps, *input_addresses, *hist_addresses, status_address)``
         (``diagnostics``: ``_run_diag``, whose histories are the state's, then those of

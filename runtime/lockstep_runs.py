@@ -91,9 +91,8 @@ def _lockstep_loop(filt, name: str):
     if backend.kind != "compiled" or filt._scaling is not None or filt._form is not None or filt._dtype != np.float64:
         return None
     kernel = filt.spec.run.get(name, filt.spec.step[name])
-    function = getattr(backend.lib, f"{backend.model}_{kernel}_run_lockstep", None)
-    available = getattr(backend.lib, f"{backend.model}_{kernel}_lockstep_available", None)
-    if function is None or available is None or not available():
+    function = backend.lockstep_function(kernel)
+    if function is None:
         return None
     info = backend.kernels[kernel]
     function.argtypes = [ctypes.c_int, ctypes.c_int] + [ctypes.c_void_p] * (len(info.inputs) + 5)

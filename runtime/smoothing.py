@@ -200,9 +200,8 @@ def _lockstep_loop(filt, results: list):
     if (len(results) < 2 or backend.kind != "compiled" or filt._scaling is not None or filt._form is not None
             or filt._dtype != np.float64):
         return None
-    function = getattr(backend.lib, f"{backend.model}_{kernel}_run_lockstep", None)
-    available = getattr(backend.lib, f"{backend.model}_{kernel}_lockstep_available", None)
-    if function is None or available is None or not available() or not _same_inputs(results):
+    function = backend.lockstep_function(kernel)
+    if function is None or not _same_inputs(results):
         return None
     info = backend.kernels[kernel]
     names = [name for name, _ in info.inputs if name not in SMOOTHED]

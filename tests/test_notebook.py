@@ -14,9 +14,9 @@ def _stdout(cell) -> str:
 
 
 def test_the_example_notebook_runs_and_prints_what_it_stores(tmp_path):
-    nbformat = pytest.importorskip("nbformat")
-    nbclient = pytest.importorskip("nbclient")
-    pytest.importorskip("ipykernel")
+    nbformat = pytest.importorskip("nbformat", reason="the notebook test needs nbclient, nbformat and ipykernel (pip install -e '.[test]')")
+    nbclient = pytest.importorskip("nbclient", reason="the notebook test needs nbclient, nbformat and ipykernel (pip install -e '.[test]')")
+    pytest.importorskip("ipykernel", reason="the notebook test needs nbclient, nbformat and ipykernel (pip install -e '.[test]')")
     stored = nbformat.read(NOTEBOOK, as_version=4)
     run = nbformat.read(NOTEBOOK, as_version=4)
     nbclient.NotebookClient(run, timeout=180, kernel_name="python3",

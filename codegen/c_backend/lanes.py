@@ -27,12 +27,12 @@ precision build or a CPU other than x86-64 has none.
 from __future__ import annotations
 
 import math
-import platform
 from dataclasses import dataclass
 
 import casadi as ca
 
 from ..discretize import measurement_function
+from .vector_c import vector_build
 
 #: Points per SIMD instruction: AVX2's four doubles (valgrind counts AVX2, not AVX-512).
 LANES = 4
@@ -81,8 +81,7 @@ class LaneSpec:
 
 def enabled(config) -> bool:
     """Lanes for this configuration: ``ukf_lanes`` (default off), double precision, an x86-64 host."""
-    return bool(config.get("ukf_lanes", False)) and config.precision == "double" and platform.machine() in (
-        "x86_64", "AMD64")
+    return bool(config.get("ukf_lanes", False)) and vector_build(config)
 
 
 def lanes_file(model: str) -> str:

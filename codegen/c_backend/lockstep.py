@@ -18,7 +18,6 @@ Host library only, like the UKF's lanes: the unit compiles to nothing without ``
 """
 from __future__ import annotations
 
-import platform
 from dataclasses import dataclass
 
 import casadi as ca
@@ -28,7 +27,7 @@ from ..spec import STATUS_ARGS, STATUS_GATED, STATUS_OK, Kernel
 from .api import param_list
 from .arguments import passing, sanitised_z
 from .flatten import Flattener, Substitute
-from .vector_c import PRELUDE, WIDTH, vector_body
+from .vector_c import PRELUDE, WIDTH, vector_body, vector_build
 
 
 #: Per-step inputs that each run has its own of (the rest of a run's inputs are shared).
@@ -56,8 +55,7 @@ def enabled(config, family: str) -> bool:
     units add about 1.4 s (EKF) and 3.2 s (UKF) of compiler CPU per launcher measurement to every
     build and every edit of the model; the launcher campaign's builds turn them on), double
     precision, an x86-64 host."""
-    return bool(config.get(f"{family}_lockstep", False)) and config.precision == "double" and platform.machine() in (
-        "x86_64", "AMD64")
+    return bool(config.get(f"{family}_lockstep", False)) and vector_build(config)
 
 
 def host_flags(config, unit: str) -> list[str]:
@@ -117,15 +115,20 @@ def _straight_line(step: Kernel, predict: Kernel, update: Kernel, substitutes: d
     inputs = [symbols[a.name] for a in step.inputs]
     outputs = [updated[n] for n in ("x", "P", "y", "S", "status")] + [predicted["status"]]
     fn = ca.Function(f"{step.name}_lockstep", inputs, outputs, {"cse": True})
-    flag = ca.SX(0)
-    for condition in flattener.conditions:
-        flag = ca.logic_or(flag, condition)
-    flags = ca.Function(f"{step.name}_lockstep_flags", inputs, [flag], {"cse": True})
+    flags = _flags_function(f"{step.name}_lockstep_flags", inputs, flattener.conditions)
     sizes = {a.name: a.size for a in step.outputs}
     if [fn.nnz_out(i) for i in range(5)] != [sizes[n] for n in ("x", "P", "y", "S", "status")]:
         raise NotImplementedError("lockstep: a sparse output")
     vector_body(fn), vector_body(flags)                    # NotImplementedError: no lockstep
     return fn, flags
+
+
+def _flags_function(name: str, inputs: list, conditions: list) -> ca.Function:
+    """1 where any of the branch ``conditions`` holds (the lanes' result is not the C's there)."""
+    flag = ca.SX(0)
+    for condition in conditions:
+        flag = ca.logic_or(flag, condition)
+    return ca.Function(name, inputs, [flag], {"cse": True})
 
 
 def smoother_spec_of(kernel: Kernel, substitutes: dict) -> LockstepSpec | None:
@@ -140,10 +143,7 @@ def smoother_spec_of(kernel: Kernel, substitutes: dict) -> LockstepSpec | None:
         flattener = Flattener(substitutes)
         outs = flattener.flat(fn, [[s.nz[i] for i in range(s.nnz())] for s in symbols])
         flat = ca.Function(f"{kernel.name}_lockstep", symbols, [ca.vertcat(*o) for o in outs], {"cse": True})
-        flag = ca.SX(0)
-        for condition in flattener.conditions:
-            flag = ca.logic_or(flag, condition)
-        flags = ca.Function(f"{kernel.name}_lockstep_flags", symbols, [flag], {"cse": True})
+        flags = _flags_function(f"{kernel.name}_lockstep_flags", symbols, flattener.conditions)
         vector_body(flat), vector_body(flags)
         return LockstepSpec(kernel, flat, flags)
     except NotImplementedError:

@@ -9,6 +9,7 @@ bit (the unit is compiled without FMA contraction: AVX2 only, ``-ffp-contract=of
 from __future__ import annotations
 
 import math
+import platform
 
 import casadi as ca
 
@@ -40,6 +41,11 @@ _UNARY = {ca.OP_ASSIGN: "{a}", ca.OP_NEG: "(-{a})", ca.OP_SQ: "({a}*{a})", ca.OP
 _UNARY_CALLS = {getattr(ca, f"OP_{name.upper()}"): name for name in
                 ("exp", "log", "sqrt", "sin", "cos", "tan", "asin", "acos", "atan", "sinh", "cosh", "tanh", "asinh",
                  "acosh", "atanh", "fabs", "floor", "ceil", "erf", "log1p", "expm1")}
+
+
+def vector_build(config) -> bool:
+    """A build whose host library can have AVX2 vector units: double precision on an x86-64 host."""
+    return config.precision == "double" and platform.machine() in ("x86_64", "AMD64")
 
 
 def _literal(value: float) -> str:

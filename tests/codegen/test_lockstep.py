@@ -2,6 +2,7 @@
 library steps 4 runs per AVX2 vector, and each run's result is Filter.run's for that run, bit for
 bit: x, P, y, S and every status code, over whole launcher flights that hold the model's events,
 refused steps, gated updates and masked measurements."""
+import platform
 import subprocess
 from pathlib import Path
 
@@ -186,7 +187,7 @@ def test_bundle_makefile_compiles_the_lockstep_unit_to_nothing(model, tmp_path):
 def test_lockstep_only_for_double_builds_and_when_asked():
     for family in ("ekf", "ukf"):
         asked = {f"{family}_lockstep": True}
-        assert lockstep.enabled(make_config("launcher", **asked), family) == (lockstep.platform.machine() in
+        assert lockstep.enabled(make_config("launcher", **asked), family) == (platform.machine() in
                                                                              ("x86_64", "AMD64"))
         assert not lockstep.enabled(make_config("launcher", precision="float", **asked), family)
         assert not lockstep.enabled(make_config("launcher"), family)           # the default build has none

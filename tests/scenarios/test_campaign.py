@@ -253,7 +253,7 @@ def test_a_campaign_on_a_whole_o3_build_gives_the_default_build_s_numbers(launch
 
 def test_progress_bar_uses_tqdm_on_a_terminal_and_its_own_lines_in_a_log():
     import io
-    pytest.importorskip("tqdm")
+    pytest.importorskip("tqdm", reason="tqdm is not installed (pip install -e '.[test]')")
     from symkf.scenarios.campaign import ProgressBar
 
     class Terminal(io.StringIO):

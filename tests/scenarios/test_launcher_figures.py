@@ -57,8 +57,8 @@ def test_symkf_plot_redraws_the_saved_figures_without_a_filter(tmp_path, launche
     campaign and the filters' runs are made unavailable first)."""
     from symkf.scenarios import results
     if netcdf:
-        pytest.importorskip("xarray")
-        pytest.importorskip("h5netcdf")
+        pytest.importorskip("xarray", reason="netCDF needs xarray and h5netcdf (pip install 'symkf[results]', or -e '.[test]')")
+        pytest.importorskip("h5netcdf", reason="netCDF needs xarray and h5netcdf (pip install 'symkf[results]', or -e '.[test]')")
     else:
         monkeypatch.setattr(results, "netcdf_available", lambda: False)
     out, again = tmp_path / "run", tmp_path / "again"

@@ -30,8 +30,8 @@ def _check(loaded: R.Series) -> None:
 
 
 def test_netcdf_round_trip_is_exact_and_self_describing(tmp_path, monkeypatch):
-    xr = pytest.importorskip("xarray")
-    pytest.importorskip("h5netcdf")
+    xr = pytest.importorskip("xarray", reason="netCDF needs xarray and h5netcdf (pip install 'symkf[results]', or -e '.[test]')")
+    pytest.importorskip("h5netcdf", reason="netCDF needs xarray and h5netcdf (pip install 'symkf[results]', or -e '.[test]')")
     path = R.save(_series(), tmp_path)
     assert path.name == "series.nc"
     with xr.open_dataset(path) as data:                     # any netCDF reader: names, dims, units
