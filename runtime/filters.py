@@ -271,7 +271,8 @@ class Filter(FilterState):
         """Monte Carlo runs over one clock, one per z[r] (z: (runs, N, m)), each from the filter's
         x, P and t, which stay as they are: a list of RunResults, each what :meth:`run` returns for
         that run, bit for bit, computed 4 runs at a time where the library has the lockstep loop
-        (:func:`symkf.runtime.lockstep_runs.run_lockstep`)."""
+        (:func:`symkf.runtime.lockstep_runs.run_lockstep`); a library built with
+        ``<family>_lockstep_vector_math`` differs from :meth:`run` by libmvec's round-off."""
         return lockstep_runs.run_lockstep(self, times, z, measurement, q, mask, u, nan, refused)
 
     def run_steps(self, dt, z, measurement: str | None = None, q=None, mask=None, u=None,

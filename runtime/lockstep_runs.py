@@ -7,7 +7,9 @@ times, u and q; each has its own z (and mask, if given per run). The result is o
 :class:`~symkf.runtime.runs.RunResult` per run, equal bit for bit to what :meth:`Filter.run` returns
 for that run from the same state: the generated ``<kernel>_run_lockstep`` steps 4 runs per AVX2
 vector and hands every step the scalar code would not have taken cleanly to the scalar step
-(codegen/c_backend/lockstep.py). Without that loop (the CasADi-VM backend, a CPU without AVX2, a
+(codegen/c_backend/lockstep.py). A library built with ``<family>_lockstep_vector_math`` (the
+launcher campaign's) calls libmvec in the prediction's lanes: each run then differs from
+:meth:`Filter.run` by libmvec's round-off, its codes and refused steps the same. Without that loop (the CasADi-VM backend, a CPU without AVX2, a
 family or build that has none) each run is :meth:`Filter.run` in turn: the same numbers, slower.
 """
 from __future__ import annotations

@@ -167,7 +167,8 @@ def smooth_lockstep(filt, results: list, errors: str = "raise") -> list:
     """:func:`smooth` of each of ``results`` (runs of ``filt`` over one clock with the same inputs
     but z: :meth:`Filter.run_lockstep`'s), each bit for bit what :func:`smooth` returns for it; the
     library's ``<smoother>_run_lockstep`` (codegen/c_backend/smooth_lockstep.py) does 4 backward
-    passes per AVX2 vector where it has one, else each run is :func:`smooth` in turn."""
+    passes per AVX2 vector where it has one, else each run is :func:`smooth` in turn (a library
+    built with ``<family>_lockstep_vector_math``: within libmvec's round-off of :func:`smooth`)."""
     if errors not in ("raise", "keep"):
         raise ValueError("errors: expected 'raise' or 'keep'")
     loop = _lockstep_loop(filt, results)

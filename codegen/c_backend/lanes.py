@@ -10,7 +10,7 @@ that depend on t, dt, u and p only evaluated once before the loop, conditionals 
 The update's h at the sigma points (eq (2)'s predicted measurements) likewise, with
 ``ukf_lanes_update`` only: its round-off (positions formed at the Earth's radius from libmvec's
 sin/cos) moved a campaign run's whole-flight RMS by up to 9.6e-5 relative, the predict's lanes by
-at most 1.0e-7 (scenarios/launcher/lanes_equivalence.py).
+at most 1.0e-7 (scenarios/launcher/roundoff_equivalence.py).
 
 Every other operation is CasADi's own (the same IEEE operations in the same order; ``-std=c99``
 keeps contraction into FMA off), so a propagated point differs from the scalar unit's only by

@@ -5,12 +5,14 @@ parameters q, the same constants, each run its own measurements z (and mask). Th
 :data:`~symkf.codegen.c_backend.vector_c.WIDTH` runs at once: the whole step (the prediction, the
 model's f_d and its Jacobian, h and its Jacobian, the update) is one straight-line algorithm
 (c_backend/flatten.py) evaluated on vectors of one value per run (c_backend/vector_c.py), every
-libm call the scalar one lane by lane. A lane's result is taken as it is only when the scalar step
+libm call the scalar one lane by lane (or, with ``<family>_lockstep_vector_math``, libmvec's call
+for all lanes: each run's numbers then differ from the scalar code's by its round-off). A lane's result is taken as it is only when the scalar step
 would have succeeded on it: the inputs finite, no event in the step (the lanes evaluate the step's
 plain branch), both kernels' status 0 and every output finite. Any other lane — a refused, gated,
 masked-out or event step — is the scalar step itself (``<model>_<kernel>``, the checked C API
 function), so the codes, histories and kept states are those of ``<kernel>_run_diag`` for each run,
-bit for bit (tests/codegen/test_lockstep.py).
+bit for bit without vector math (tests/codegen/test_lockstep.py). The branch conditions always use
+libm's scalar calls, so each lane takes the branch the scalar code takes.
 
 Host library only, like the UKF's lanes: the unit compiles to nothing without ``SYMKF_LANES``
 (the flight bundle's Makefile) and the loop returns SYMKF_ERR_ARGS on a CPU without AVX2
@@ -18,7 +20,7 @@ Host library only, like the UKF's lanes: the unit compiles to nothing without ``
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import casadi as ca
 
@@ -40,14 +42,20 @@ UNIT_FLAGS = ["-DSYMKF_LANES", "-O2", "-ffp-contract=off"]
 
 @dataclass(frozen=True)
 class LockstepSpec:
-    """A fused step kernel (``kernel``: its arguments) and its straight-line form ``flat``: (the
-    step's inputs) -> (x, P, y, S, update status, predict status), valid where ``flags`` (the same
-    inputs -> 1 where the C would take another branch: an event in the step, a nonzero centre
-    weight) is 0."""
+    """A fused step kernel (``kernel``: its arguments) and its straight-line form, valid where
+    ``flags`` (the step's inputs -> 1 where the C would take another branch: an event in the step,
+    a nonzero centre weight) is 0. A filter step is two stages: ``flat`` (the step's inputs) ->
+    (predicted x, P, predict status) and ``update_flat`` (the step's inputs, predicted x, P) ->
+    (x, P, y, S, update status); a smoother's backward step is ``flat`` alone (inputs -> xs, Ps,
+    status). ``vector_math``: ``flat``'s sin, cos, exp, log, pow, atan2 are libmvec's (the update's
+    stay libm's: h forms positions at the Earth's radius, where a few ulp of a sine move a chaotic
+    run's whole flight)."""
 
     kernel: Kernel
     flat: ca.Function
     flags: ca.Function
+    update_flat: ca.Function | None = None
+    vector_math: bool = False
 
 
 def enabled(config, family: str) -> bool:
@@ -56,6 +64,12 @@ def enabled(config, family: str) -> bool:
     build and every edit of the model; the launcher campaign's builds turn them on), double
     precision, an x86-64 host."""
     return bool(config.get(f"{family}_lockstep", False)) and vector_build(config)
+
+
+def vector_math(config, family: str) -> bool:
+    """``<family>_lockstep_vector_math``: the lockstep lanes call libmvec (default off: the scalar
+    code's numbers bit for bit)."""
+    return bool(config.get(f"{family}_lockstep_vector_math", False))
 
 
 def host_flags(config, unit: str) -> list[str]:
@@ -94,8 +108,9 @@ def substitutes_of(propagation) -> dict[str, Substitute]:
 
 
 def _straight_line(step: Kernel, predict: Kernel, update: Kernel, substitutes: dict):
-    """(the step as one SX Function of its inputs -> x, P, y, S, update status, predict status;
-    the branch conditions as one of the same inputs -> flag)."""
+    """(the prediction as one SX Function of the step's inputs -> predicted x, P, status; the
+    branch conditions as one of the same inputs -> flag; the update as one of the step's inputs
+    and the predicted x, P -> x, P, y, S, status)."""
     symbols = {a.name: ca.SX.sym(a.name, *a.shape) for a in step.inputs}
     flattener = Flattener(substitutes)
 
@@ -110,25 +125,33 @@ def _straight_line(step: Kernel, predict: Kernel, update: Kernel, substitutes: d
         outs = flattener.flat(fn, [nonzeros(v) for v in values])
         return {fn.name_out(i): ca.vertcat(*outs[i]) if outs[i] else ca.SX(0, 1) for i in range(fn.n_out())}
     predicted = run(predict, symbols)
+    x_mid, P_mid = ca.SX.sym("x_predicted", *symbols["x"].shape), ca.SX.sym("P_predicted", *symbols["P"].shape)
     t_next = symbols["t"] + symbols["dt"]                  # as the C step: t_next = t + dt
-    updated = run(update, {**symbols, "t": t_next, "x": predicted["x"], "P": predicted["P"]})
+    updated = run(update, {**symbols, "t": t_next, "x": x_mid, "P": P_mid})
     inputs = [symbols[a.name] for a in step.inputs]
-    outputs = [updated[n] for n in ("x", "P", "y", "S", "status")] + [predicted["status"]]
-    fn = ca.Function(f"{step.name}_lockstep", inputs, outputs, {"cse": True})
+    prediction = ca.Function(f"{step.name}_lockstep_predict", inputs,
+                             [predicted["x"], predicted["P"], predicted["status"]], {"cse": True})
+    update_fn = ca.Function(f"{step.name}_lockstep_update", inputs + [x_mid, P_mid],
+                            [updated[n] for n in ("x", "P", "y", "S", "status")], {"cse": True})
     flags = _flags_function(f"{step.name}_lockstep_flags", inputs, flattener.conditions)
     sizes = {a.name: a.size for a in step.outputs}
-    if [fn.nnz_out(i) for i in range(5)] != [sizes[n] for n in ("x", "P", "y", "S", "status")]:
+    if [update_fn.nnz_out(i) for i in range(5)] != [sizes[n] for n in ("x", "P", "y", "S", "status")] or \
+            [prediction.nnz_out(i) for i in range(2)] != [sizes["x"], sizes["P"]]:
         raise NotImplementedError("lockstep: a sparse output")
-    vector_body(fn), vector_body(flags)                    # NotImplementedError: no lockstep
-    return fn, flags
+    vector_body(prediction), vector_body(update_fn), vector_body(flags)      # NotImplementedError: no lockstep
+    return prediction, flags, update_fn
 
 
 def _flags_function(name: str, inputs: list, conditions: list) -> ca.Function:
-    """1 where any of the branch ``conditions`` holds (the lanes' result is not the C's there)."""
+    """1 where any of the branch ``conditions`` holds (the lanes' result is not the C's there);
+    a condition that is not a function of ``inputs`` alone (one on the predicted state): no lockstep."""
     flag = ca.SX(0)
     for condition in conditions:
         flag = ca.logic_or(flag, condition)
-    return ca.Function(name, inputs, [flag], {"cse": True})
+    try:
+        return ca.Function(name, inputs, [flag], {"cse": True})
+    except RuntimeError as exc:                              # free variables: a condition on the predicted state
+        raise NotImplementedError(f"lockstep: {exc}") from None
 
 
 def smoother_spec_of(kernel: Kernel, substitutes: dict) -> LockstepSpec | None:
@@ -150,9 +173,9 @@ def smoother_spec_of(kernel: Kernel, substitutes: dict) -> LockstepSpec | None:
         return None
 
 
-def specs_of(bundle_kernels, filters, propagation) -> tuple[LockstepSpec, ...]:
+def specs_of(bundle_kernels, filters, propagation, vector_math: bool = False) -> tuple[LockstepSpec, ...]:
     """The lockstep forms of a family's fused steps (``filters``: its FilterSpecs; ``propagation``:
-    its f_d's :class:`~symkf.codegen.model_functions.Propagation`)."""
+    its f_d's :class:`~symkf.codegen.model_functions.Propagation`; ``vector_math``: libmvec's calls)."""
     kernels = {k.name: k for k in bundle_kernels}
     substitutes = substitutes_of(propagation)
     made = []
@@ -164,7 +187,7 @@ def specs_of(bundle_kernels, filters, propagation) -> tuple[LockstepSpec, ...]:
                                     substitutes))
         if spec.smooth:
             made.append(smoother_spec_of(kernels[spec.smooth], substitutes))
-    return tuple(m for m in made if m is not None)
+    return tuple(replace(m, vector_math=vector_math) for m in made if m is not None)
 
 
 # ---------------------------------------------------------------------- C
@@ -210,10 +233,10 @@ def scalar_prototype(model: str, kernel: Kernel) -> str:
     return f"int {model}_{kernel.name}({', '.join(param_list(kernel))});   /* {model}_api.c: the checked scalar step */"
 
 
-def vector_function(name: str, fn: ca.Function) -> list[str]:
+def vector_function(name: str, fn: ca.Function, vector_math: bool = False) -> list[str]:
     return [f"__attribute__((target(\"avx2\"))) static void {name}(const symkf_v4 *const *in, symkf_v4 *const *out) {{",
             "  (void)in;                 /* (a constant function reads no input) */",
-            *(f"  {line}" for line in vector_body(fn)), "}", ""]
+            *(f"  {line}" for line in vector_body(fn, vector_math)), "}", ""]
 
 
 def lockstep_function(model: str, spec: LockstepSpec) -> str:
@@ -222,7 +245,9 @@ def lockstep_function(model: str, spec: LockstepSpec) -> str:
     name = f"{model}_{kernel.name}"
     params = lockstep_params(spec)
     return "\n".join([
-        *vector_function(f"{name}_lanes", spec.flat), *vector_function(f"{name}_flags", spec.flags),
+        *vector_function(f"{name}_lanes_predict", spec.flat, spec.vector_math),
+        *vector_function(f"{name}_lanes_update", spec.update_flat), *_two_stages(name, kernel),
+        *vector_function(f"{name}_flags", spec.flags),
         scalar_prototype(model, kernel), "",
         f"__attribute__((target(\"avx2\"))) static int {name}_lockstep_avx2({', '.join(params)}) {{",
         *_declarations(kernel),
@@ -238,6 +263,23 @@ def lockstep_function(model: str, spec: LockstepSpec) -> str:
         f"  if (n_runs < 0 || n_steps < 0 || !__builtin_cpu_supports(\"avx2\")) return {STATUS_ARGS};",
         f"  return {name}_lockstep_avx2({', '.join(p.split()[-1].lstrip('*') for p in params)});",
         "}", ""])
+
+
+def _two_stages(name: str, kernel: Kernel) -> list[str]:
+    """``<name>_lanes``: the prediction's lanes, then the update's on the predicted x, P (out[5]:
+    the prediction's status)."""
+    sizes, n_in = {a.name: a.size for a in kernel.inputs}, len(kernel.inputs)
+    return [f"__attribute__((target(\"avx2\"))) static void {name}_lanes(const symkf_v4 *const *in, "
+            "symkf_v4 *const *out) {",
+            f"  symkf_v4 x_predicted[{sizes['x']}], P_predicted[{sizes['P']}];",
+            f"  symkf_v4 *const predicted[3] = {{x_predicted, P_predicted, out[5]}};",
+            f"  const symkf_v4 *update_in[{n_in + 2}];",
+            "  int i;",
+            f"  for (i = 0; i < {n_in}; ++i) update_in[i] = in[i];",
+            f"  update_in[{n_in}] = x_predicted; update_in[{n_in + 1}] = P_predicted;",
+            f"  {name}_lanes_predict(in, predicted);",
+            f"  {name}_lanes_update(update_in, out);",
+            "}", ""]
 
 
 def _declarations(kernel: Kernel) -> list[str]:

@@ -5,7 +5,7 @@ from __future__ import annotations
 from ..spec import STATUS_GATED, STATUS_OK
 from .lockstep import LockstepSpec, lockstep_file, lockstep_function
 from .smooth_lockstep import smooth_lockstep_function
-from .vector_c import PRELUDE, WIDTH
+from .vector_c import PRELUDE, VECTOR_MATH_DECLARATIONS, WIDTH
 
 
 def lockstep_units(model: str, specs: list[LockstepSpec], notice: str) -> dict[str, str]:
@@ -25,6 +25,7 @@ def lockstep_unit(model: str, spec: LockstepSpec, notice: str) -> str:
         f"typedef int {name}_lockstep_unit;       /* (a unit is never empty: ISO C) */", "",
         "#if defined(SYMKF_LANES) && defined(__GNUC__) && defined(__x86_64__)",
         PRELUDE,
+        *([VECTOR_MATH_DECLARATIONS] if spec.vector_math else []),
         "typedef double casadi_real;          /* (the API's scalar type: lockstep is double only) */",
         f"#define SYMKF_LOCKSTEP_OK {STATUS_OK}",
         f"#define SYMKF_LOCKSTEP_GATED {STATUS_GATED}",

@@ -45,7 +45,7 @@ def smooth_lockstep_function(model: str, spec: LockstepSpec) -> str:
     ahead_finite = " && ".join(f"symkf_lockstep_finite({a} + (long) (k + 1) * {sizes[a]}, {sizes[a]})" for a in ahead)
     rows = "const long at = (long) run[l] * n_steps + k"
     return "\n".join([
-        *vector_function(f"{name}_lanes", spec.flat), *vector_function(f"{name}_flags", spec.flags),
+        *vector_function(f"{name}_lanes", spec.flat, spec.vector_math), *vector_function(f"{name}_flags", spec.flags),
         scalar_prototype(model, kernel), "",
         f"__attribute__((target(\"avx2\"))) static int {name}_lockstep_avx2({', '.join(params)}) {{",
         *[f"  symkf_v4 in_{a.name}[{max(a.size, 1)}];" for a in kernel.inputs],

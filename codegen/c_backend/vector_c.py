@@ -4,7 +4,10 @@ Each CasADi operation becomes the same IEEE operation on a vector of :data:`WIDT
 ``+ - * /`` lane by lane, exact as the scalar ones), a comparison a lane mask turned into 1.0 or
 0.0, ``a ? b : 0`` a bitwise select. Every library function (sin, cos, exp, atan2, sqrt, fmin, ...)
 is the scalar libm call on each lane, so a lane computes what CasADi's scalar C computes, bit for
-bit (the unit is compiled without FMA contraction: AVX2 only, ``-ffp-contract=off``).
+bit (the unit is compiled without FMA contraction: AVX2 only, ``-ffp-contract=off``). With
+``vector_math``, sin, cos, exp, log, pow and atan2 are instead one call of glibc's libmvec for all
+lanes (its AVX2 clones ``_ZGVdN4v_*``): a few ulp from libm a call (glibc documents at most 4),
+at a fraction of its cost.
 """
 from __future__ import annotations
 
@@ -38,6 +41,12 @@ _BINARY_CALLS = {ca.OP_POW: "pow", ca.OP_CONSTPOW: "pow", ca.OP_ATAN2: "atan2", 
 _UNARY = {ca.OP_ASSIGN: "{a}", ca.OP_NEG: "(-{a})", ca.OP_SQ: "({a}*{a})", ca.OP_TWICE: "(SYMKF_SPLAT(2.)*{a})",
           ca.OP_INV: "(SYMKF_SPLAT(1.)/{a})", ca.OP_NOT: "SYMKF_TRUTH({a}==SYMKF_SPLAT(0.))",
           ca.OP_SIGN: "SYMKF_LANE1(symkf_sign, {a})"}
+#: libm functions with an AVX2 clone in glibc's libmvec (since glibc 2.22; atan2 since 2.35): name -> arity.
+VECTOR_MATH = {"sin": 1, "cos": 1, "exp": 1, "log": 1, "pow": 2, "atan2": 2}
+#: Their declarations (the vector ABI's mangled names: 4 lanes of AVX2, each argument a vector).
+VECTOR_MATH_DECLARATIONS = "\n".join(
+    f"symkf_v4 _ZGVdN4{'v' * arity}_{name}({', '.join(['symkf_v4'] * arity)});   /* libmvec */"
+    for name, arity in VECTOR_MATH.items())
 _UNARY_CALLS = {getattr(ca, f"OP_{name.upper()}"): name for name in
                 ("exp", "log", "sqrt", "sin", "cos", "tan", "asin", "acos", "atan", "sinh", "cosh", "tanh", "asinh",
                  "acosh", "atanh", "fabs", "floor", "ceil", "erf", "log1p", "expm1")}
@@ -56,7 +65,14 @@ def _literal(value: float) -> str:
     return f"SYMKF_SPLAT({float(value)!r})"
 
 
-def _expression(fn: ca.Function, k: int, names: dict[int, str]) -> str:
+def _call(name: str, operands: list[str], vector_math: bool) -> str:
+    """A library call on every lane: libmvec's clone (``vector_math``) or libm's function lane by lane."""
+    if vector_math and name in VECTOR_MATH:
+        return f"_ZGVdN4{'v' * len(operands)}_{name}({', '.join(operands)})"
+    return f"SYMKF_LANE{len(operands)}({name}, {', '.join(operands)})"
+
+
+def _expression(fn: ca.Function, k: int, names: dict[int, str], vector_math: bool) -> str:
     op, args = fn.instruction_id(k), fn.instruction_input(k)
     if op == ca.OP_INPUT:
         return f"in[{args[0]}][{args[1]}]"
@@ -65,17 +81,18 @@ def _expression(fn: ca.Function, k: int, names: dict[int, str]) -> str:
     if op in _ARITHMETIC:
         return _ARITHMETIC[op].format(a=names[args[0]], b=names[args[1]])
     if op in _BINARY_CALLS:
-        return f"SYMKF_LANE2({_BINARY_CALLS[op]}, {names[args[0]]}, {names[args[1]]})"
+        return _call(_BINARY_CALLS[op], [names[args[0]], names[args[1]]], vector_math)
     if op in _UNARY:
         return _UNARY[op].format(a=names[args[0]])
     if op in _UNARY_CALLS:
-        return f"SYMKF_LANE1({_UNARY_CALLS[op]}, {names[args[0]]})"
+        return _call(_UNARY_CALLS[op], [names[args[0]]], vector_math)
     raise NotImplementedError(f"vector C: CasADi operation {op} has no form here")
 
 
-def vector_body(fn: ca.Function) -> list[str]:
+def vector_body(fn: ca.Function, vector_math: bool = False) -> list[str]:
     """``fn``'s algorithm as C statements on ``const symkf_v4 *const *in`` and ``symkf_v4 *const *out``
-    (input i's nonzero j is ``in[i][j]``; output i's nonzero j is written to ``out[i][j]``)."""
+    (input i's nonzero j is ``in[i][j]``; output i's nonzero j is written to ``out[i][j]``); with
+    ``vector_math``, libmvec's calls for the functions of :data:`VECTOR_MATH`."""
     names: dict[int, str] = {}
     lines = []
     for k in range(fn.n_instructions()):
@@ -83,7 +100,7 @@ def vector_body(fn: ca.Function) -> list[str]:
         if op == ca.OP_OUTPUT:
             lines.append(f"out[{out[0]}][{out[1]}] = {names[args[0]]};")
             continue
-        lines.append(f"const symkf_v4 w{k} = {_expression(fn, k, names)};")
+        lines.append(f"const symkf_v4 w{k} = {_expression(fn, k, names, vector_math)};")
         names[out[0]] = f"w{k}"
     return lines
 

@@ -33,7 +33,8 @@ it ran (content hash, -O flags).
 ``--instructions`` counts, with callgrind, the instructions of one call of each part (predict,
 update, the fused step, a step inside the run loop, a backward step of the RTS smoother's
 ``<filter>_smooth_run`` over that run, and a run-step of 4 runs stepped in lockstep in AVX2
-vectors: ``Filter.run_lockstep``, the campaign's loop), with where a step's instructions go
+vectors: ``Filter.run_lockstep``, the campaign's loop, with libmvec in the prediction and, exact,
+with libm lane by lane; and the same for a backward step), with where a step's instructions go
 (wrapper, run loop, propagation, h and H, predict and update kernels, libm), and the UKF step of
 the build with SIMD lanes (``ukf_lanes=True``: four sigma points at a time in AVX2 lanes; the
 default library, like the flight bundle, computes them one at a time) in the row "SIMD lanes".
@@ -57,7 +58,7 @@ from symkf.runtime.reference import ReferenceFilter
 from symkf.scenarios import callgrind, timing
 from symkf.scenarios.campaign import compiled_model
 from symkf.scenarios.report import emit
-from .campaign import LOCKSTEP_BUILD, LOCKSTEP_RUNS, TUNING, Campaign, initial_estimate, Case
+from .campaign import EXACT_LOCKSTEP_BUILD, LOCKSTEP_BUILD, LOCKSTEP_RUNS, TUNING, Campaign, initial_estimate, Case
 from .truth import propagate, radar_track
 
 FILTERS = ("ekf", "ukf")
@@ -338,8 +339,9 @@ def c_loop_instructions(work: Workload) -> dict[str, dict]:
         return out
     with tempfile.TemporaryDirectory() as tmp:
         exe = _compile_c_loop(directory, Path(tmp))
-        lockstep_exe = _compile_c_loop(build_model("launcher", **LOCKSTEP_BUILD).directory, Path(tmp) / "lockstep",
-                                       ("-DSYMKF_LOCKSTEP",))
+        lockstep_exes = {suffix: _compile_c_loop(build_model("launcher", **build).directory,
+                                                 Path(tmp) / f"lockstep{suffix}", ("-DSYMKF_LOCKSTEP",))
+                         for suffix, build in (("", LOCKSTEP_BUILD), ("_exact", EXACT_LOCKSTEP_BUILD))}
         stdin = _c_loop_input(work)
         for family in FILTERS:
             counts = {part: _instructions_per_step(exe, family, part, stdin, Path(tmp)) for part in PARTS}
@@ -348,10 +350,11 @@ def c_loop_instructions(work: Workload) -> dict[str, dict]:
             for row, (part, functions) in SELF_COSTS.items():
                 parts[row] = sum(counts[part][1].get(f.format(m="launcher", f=family), 0) for f in functions)
             parts.update(step_breakdown(counts["step"][1], "launcher", family))
-            lockstep, _ = _instructions_per_step(lockstep_exe, family, "lockstep", stdin, Path(tmp))
-            both, _ = _instructions_per_step(lockstep_exe, family, "smooth-lockstep", stdin, Path(tmp))
-            parts["lockstep"] = (lockstep - parts["run"]) / LOCKSTEP_RUNS     # per run-step of LOCKSTEP_RUNS runs
-            parts["backward_lockstep"] = (both - lockstep) / LOCKSTEP_RUNS
+            for suffix, lockstep_exe in lockstep_exes.items():
+                lockstep, _ = _instructions_per_step(lockstep_exe, family, "lockstep", stdin, Path(tmp))
+                both, _ = _instructions_per_step(lockstep_exe, family, "smooth-lockstep", stdin, Path(tmp))
+                parts[f"lockstep{suffix}"] = (lockstep - parts["run"]) / LOCKSTEP_RUNS   # per run-step of 4 runs
+                parts[f"backward_lockstep{suffix}"] = (both - lockstep) / LOCKSTEP_RUNS
             out[family] = {"instructions_per_step": parts["step"], "instructions_by_part": parts}
     return out
 
@@ -476,6 +479,12 @@ def campaign_lines(report: dict) -> list[str]:
             f"library {build['content_hash']} ({build['optimization']}{units})"]
 
 
+#: The lockstep rows of the parts table: the campaign's build (libmvec in the prediction) and the
+#: exact one (libm lane by lane: Filter.run's numbers bit for bit).
+LOCKSTEP_ROWS = {"lockstep": "run-step in lockstep", "backward_lockstep": "backward step, lockstep",
+                 "lockstep_exact": "  the same, exact (libm)", "backward_lockstep_exact": "  backward, exact (libm)"}
+
+
 def instruction_parts_table(report: dict) -> list[str]:
     """Instructions per call of each part (predict, update, fused step, a step inside the run
     loop), of the code around the kernels (SELF_COSTS) and of the step's functions (STEP_FUNCTIONS)."""
@@ -483,11 +492,10 @@ def instruction_parts_table(report: dict) -> list[str]:
     if not parts:
         return []
     lines = ["", f"{'instructions per call':<26}" + "".join(f"{f.upper():>13}" for f in FILTERS)]
-    for part in (*PARTS, "lockstep", "backward_lockstep", *SELF_COSTS, *STEP_FUNCTIONS):
+    for part in (*PARTS, *LOCKSTEP_ROWS, *SELF_COSTS, *STEP_FUNCTIONS):
         label = {"wrapper": "step: wrapper, checks", "composition": "step: composition",
                  "loop": "run: loop, checks", "backward": "smoother: backward step",
-                 "lockstep": "run-step in lockstep",
-                 "backward_lockstep": "backward step, lockstep"}.get(part, part)
+                 **LOCKSTEP_ROWS}.get(part, part)
         lines.append(f"{label:<26}" + "".join(f"{parts[f][part]:>13,.0f}" if part in parts[f] else f"{'-':>13}"
                                               for f in FILTERS))
     return lines

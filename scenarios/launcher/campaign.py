@@ -63,7 +63,11 @@ PRESETS = {
         "tuning": {"P0_floor": np.array([1.0, 1e-4, 1e-4, 100.0, 1e-5, 1e-5]), "Q": NEGLECTED_TERMS_Q,
                    "kappa": 0.0, "ekf_q_scale": 1.0, "ukf_q_scale": 1.0, "stations": "wgs84"}},
     "paper-like": {
-        "codegen": {"ekf_integrator": "euler", "ekf_covariance": "linear", "split_events": False},
+        # the UKF's lockstep lanes call libm: libmvec's round-off moves this preset's chaotic 10 Hz
+        # large-error UKF runs beyond the Monte Carlo error (theta 4.5 SE, its smoothing's psi 13.7 SE;
+        # scenarios/launcher/roundoff_equivalence.py --preset paper-like)
+        "codegen": {"ekf_integrator": "euler", "ekf_covariance": "linear", "split_events": False,
+                    "ukf_lockstep_vector_math": False},
         "tuning": {"P0_floor": np.array([0.01, 1e-8, 1e-8, 0.1, 1e-9, 1e-9]),
                    "Q": np.diag([0.005, 1e-12, 1e-12, 0.005, 1e-16, 1e-16]),
                    "kappa": 0.0, "ekf_q_scale": 1.0, "ukf_q_scale": 1.0, "stations": "spherical"}},
@@ -164,11 +168,17 @@ def flight_times(rate_hz: int, duration: float) -> np.ndarray:
 #: A task returns its sums (about 1.7 MB for a whole 20 Hz flight, whatever its run count), so
 #: larger tasks ship less per run; 20 keeps 2 workers busy to the end of a 100-run case.
 CHUNK_RUNS = 20
-#: The campaign's library steps its runs in lockstep (codegen options; off in the default build,
-#: whose edit loop they would slow): the same numbers as one run at a time, bit for bit.
-LOCKSTEP_BUILD = {"ekf_lockstep": True, "ukf_lockstep": True}
-#: Runs a filter and its smoother step at once (Filter.run_lockstep, smooth_lockstep: 4 AVX2 lanes):
-#: the same numbers as one run at a time, the histories of 4 runs in memory at once.
+#: The campaign's library steps its runs in lockstep, 4 per AVX2 vector, the prediction's sin, cos
+#: and exp in glibc's libmvec (codegen options; off in the default build, whose edit loop they
+#: would slow): each run differs from one run at a time by libmvec's round-off, Table 3 within its
+#: Monte Carlo error (scenarios/launcher/roundoff_equivalence.py).
+LOCKSTEP_BUILD = {"ekf_lockstep": True, "ukf_lockstep": True, "ekf_lockstep_vector_math": True,
+                  "ukf_lockstep_vector_math": True}
+#: The same loops with libm's calls lane by lane (``Campaign(exact=True)``, ``symkf compare launcher
+#: --exact``): each run's numbers are one run's at a time (the flight bundle's) bit for bit.
+EXACT_LOCKSTEP_BUILD = {"ekf_lockstep": True, "ukf_lockstep": True}
+#: Runs a filter and its smoother step at once (Filter.run_lockstep, smooth_lockstep): the
+#: histories of 4 runs in memory at once.
 LOCKSTEP_RUNS = 4
 #: Per-run summary columns (``CaseResult.per_run[family]``, one row per run, in run order).
 PER_RUN_COLUMNS = ("run", "failed_steps", "diverged", "excursion", "mean_nees",
@@ -281,13 +291,15 @@ class Campaign:
     library at -O3 (``{"optimization": "-O3 -fno-math-errno"}``, IEEE only, per-run results
     bit-identical, tested) saves under 1 % of the compiled runs' CPU against the default build
     (glue units at -O3, the model's functions at -O1 -fno-thread-jumps) for 4.4 s more compiler CPU
-    per cold build: so the default build it is.
+    per cold build: so the default build it is. ``exact``: the lockstep lanes call libm lane by
+    lane (:data:`EXACT_LOCKSTEP_BUILD`), so every run is the flight bundle's numbers bit for bit,
+    for about 1.6x the CPU; by default they call libmvec (:data:`LOCKSTEP_BUILD`).
     """
 
     def __init__(self, runs: int, seed: int, rates=L.RADAR_RATES_HZ, duration: float = L.T_INSERTION,
                  workers: int | None = None, progress=None, tuning: dict | None = None,
                  scheduler: str | None = None, preset: str = "correct", chunk_runs: int = CHUNK_RUNS,
-                 build: dict | None = None):
+                 build: dict | None = None, exact: bool = False):
         if preset not in PRESETS:
             raise ValueError(f"preset: expected one of {sorted(PRESETS)}, got '{preset}'")
         self.runs, self.seed, self.duration, self.preset = runs, seed, duration, preset
@@ -295,7 +307,8 @@ class Campaign:
         self.cases = [Case(rate, init) for rate in rates for init in ("small", "large")]
         self.workers, self.scheduler = workers, scheduler
         self.progress = progress or (lambda done, total: None)
-        self.codegen = {**LOCKSTEP_BUILD, **PRESETS[preset]["codegen"], **(build or {})}
+        lockstep = EXACT_LOCKSTEP_BUILD if exact else LOCKSTEP_BUILD
+        self.codegen = {**lockstep, **PRESETS[preset]["codegen"], **(build or {})}
         self.model_key = model_key("launcher", **self.codegen)     # one library per configuration
         self.tuning = {**PRESETS[preset]["tuning"], **(tuning or {})}
         self.stats = None

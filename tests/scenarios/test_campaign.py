@@ -251,6 +251,24 @@ def test_a_campaign_on_a_whole_o3_build_gives_the_default_build_s_numbers(launch
             np.testing.assert_array_equal(a.per_run(f), b.per_run(f))
 
 
+def test_an_exact_campaign_is_one_run_at_a_time_bit_for_bit_and_the_default_within_round_off(launcher_compiled):
+    """exact=True: the lockstep lanes call libm, every per-run row is that of the runs stepped one
+    at a time (no lockstep loops) bit for bit; the default (libmvec in the prediction) differs
+    from it by round-off only over these 30 s."""
+    exact = C.Campaign(5, SEED, rates=(20,), duration=30.0, exact=True)
+    alone = C.Campaign(5, SEED, rates=(20,), duration=30.0, build={"ekf_lockstep": False, "ukf_lockstep": False})
+    default = C.Campaign(5, SEED, rates=(20,), duration=30.0)
+    assert dict(exact.model_key.overrides) == C.EXACT_LOCKSTEP_BUILD
+    for a, b, c in zip(exact.run(), alone.run(), default.run()):
+        for f in C.ESTIMATES:
+            np.testing.assert_array_equal(a.per_run(f), b.per_run(f))
+            assert not np.array_equal(a.per_run(f), c.per_run(f))
+            counts = [C.PER_RUN_COLUMNS.index(n) for n in ("run", "failed_steps", "diverged", "excursion")]
+            np.testing.assert_array_equal(c.per_run(f)[:, counts], a.per_run(f)[:, counts])
+            squared = [i for i, n in enumerate(C.PER_RUN_COLUMNS) if n.startswith("mean_sq_error_")]
+            np.testing.assert_allclose(c.per_run(f)[:, squared], a.per_run(f)[:, squared], rtol=2e-6, atol=0)
+
+
 def test_progress_bar_uses_tqdm_on_a_terminal_and_its_own_lines_in_a_log():
     import io
     pytest.importorskip("tqdm", reason="tqdm is not installed (pip install -e '.[test]')")
