@@ -87,7 +87,7 @@ def generate_validated(model: Model, config: CodegenConfig, on_part=None) -> Bun
             lanes = c_lanes.specs_of(functions, config)
         if family in ("ekf", "ukf") and c_lockstep.enabled(config, family):    # runs in lockstep (host library only)
             lockstep += c_lockstep.specs_of(made[family].kernels, made[family].filters, functions.for_filter(family),
-                                            c_lockstep.vector_math(config, family))
+                                            c_lockstep.uses_vector_math(config, family))
         if on_part is not None:
             on_part(1 + model.filters.index(family), Bundle(model.name, list(made[family].kernels), config,
                                                              model.describe(), lanes=lanes))

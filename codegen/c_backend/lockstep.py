@@ -5,10 +5,11 @@ parameters q, the same constants, each run its own measurements z (and mask). Th
 :data:`~symkf.codegen.c_backend.vector_c.WIDTH` runs at once: the whole step (the prediction, the
 model's f_d and its Jacobian, h and its Jacobian, the update) is one straight-line algorithm
 (c_backend/flatten.py) evaluated on vectors of one value per run (c_backend/vector_c.py), every
-libm call the scalar one lane by lane (or, with ``<family>_lockstep_vector_math``, libmvec's call
-for all lanes: each run's numbers then differ from the scalar code's by its round-off). A lane's result is taken as it is only when the scalar step
-would have succeeded on it: the inputs finite, no event in the step (the lanes evaluate the step's
-plain branch), both kernels' status 0 and every output finite. Any other lane — a refused, gated,
+libm call the scalar one lane by lane (or, with ``<family>_lockstep_vector_math``, the
+prediction's are libmvec's, one call for all lanes: each run's numbers then differ from the scalar
+code's by its round-off). A lane's result is taken as it is only when the scalar step would have
+succeeded on it: the inputs finite, no event in the step (the lanes evaluate the step's plain
+branch), both kernels' status 0 and every output finite. Any other lane — a refused, gated,
 masked-out or event step — is the scalar step itself (``<model>_<kernel>``, the checked C API
 function), so the codes, histories and kept states are those of ``<kernel>_run_diag`` for each run,
 bit for bit without vector math (tests/codegen/test_lockstep.py). The branch conditions always use
@@ -66,8 +67,8 @@ def enabled(config, family: str) -> bool:
     return bool(config.get(f"{family}_lockstep", False)) and vector_build(config)
 
 
-def vector_math(config, family: str) -> bool:
-    """``<family>_lockstep_vector_math``: the lockstep lanes call libmvec (default off: the scalar
+def uses_vector_math(config, family: str) -> bool:
+    """``<family>_lockstep_vector_math``: the prediction's lockstep lanes call libmvec (default off: the scalar
     code's numbers bit for bit)."""
     return bool(config.get(f"{family}_lockstep_vector_math", False))
 
