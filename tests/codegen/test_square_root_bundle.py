@@ -1,7 +1,9 @@
 """The flight-bundle guarantees of the square-root families: srukf and srekf on the LEO model file
 (non-additive noise, an angle measurement), srmekf on the attitude model of paper 000 (a quaternion
 state and measurement), srcdekf on the geo model of paper 003 (17 states): strict C99 double and
-float builds of the exported bundle with only libm, no heap, no mutable globals; stack figures
+float builds of the exported bundle with only libm, no heap, no mutable globals (the geo bundle's
+strict builds take minutes: ``-m slow``; a small continuous-discrete cart model covers srcdekf in
+the default run); stack figures
 equal to the compiler's; every kernel call of a pass (and the documented edge cases) replayed
 under floating-point traps, reproducing Python exactly, an all-masked update leaving x and the
 factor bit-identical."""
@@ -30,11 +32,14 @@ LEO = str(MODELS_DIR / "leo_od_model.py")
 #: model -> (model file, C prefix, the square-root families, a measurement)
 BUNDLES = {"leo": (LEO, "leo_od", ("srukf", "srekf"), "tracking"),
            "attitude": (str(MODELS_DIR / "attitude_square_root_model.py"), "attitude_sr", ("srmekf",), "star_tracker"),
+           "cart_cd": (str(MODELS_DIR / "cart_cd_square_root_model.py"), "cart_sr", ("srcdekf",), "range"),
            "geo": (str(MODELS_DIR / "geo_square_root_model.py"), "geo_sr", ("srcdekf",), "gyro")}
+#: The bundles as test parameters: the geo model's (17 states: minutes of strict compiles) only with -m slow.
+BUNDLE_PARAMS = [pytest.param(name, marks=pytest.mark.slow) if name == "geo" else name for name in BUNDLES]
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="needs Linux with glibc: the trap tests enable floating-point exceptions with feenableexcept")
 
 
-@pytest.fixture(scope="module", params=list(BUNDLES))
+@pytest.fixture(scope="module", params=BUNDLE_PARAMS)
 def bundle(request, tmp_path_factory):
     path, prefix, families, measurement = BUNDLES[request.param]
     result = build_model(path)
@@ -108,10 +113,20 @@ def geo_pass(compiled):
         f.update(1e-3 * rng.standard_normal(2), "earth_sensor")
 
 
-PASSES = {"leo": leo_pass, "attitude": attitude_pass, "geo": geo_pass}
+def cart_cd_pass(compiled):
+    f = compiled.filter("srcdekf", np.array([0.0, 1.0]), np.diag([1.0, 0.25]), np.diag([1e-6, 0.01]), gate="none")
+    rng = np.random.default_rng(3)
+    u = np.array([0.5])
+    f.run_steps(np.full(600, 0.1), 1.0 + 0.05 * rng.standard_normal((600, 1)), "tacho", u=u)
+    for k in range(100):
+        f.predict(None, 0.1, u=u)
+        f.update([np.hypot(f.x[0], 3.0) + 0.1 * rng.standard_normal()], "range")
 
 
-@pytest.mark.parametrize("model", list(BUNDLES))
+PASSES = {"leo": leo_pass, "attitude": attitude_pass, "cart_cd": cart_cd_pass, "geo": geo_pass}
+
+
+@pytest.mark.parametrize("model", BUNDLE_PARAMS)
 def test_square_root_kernels_do_not_trap(model, monkeypatch, tmp_path):
     compiled = load(BUNDLES[model][0], backend="compiled")
     recorder = Recorder(monkeypatch)
