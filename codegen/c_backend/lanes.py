@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import casadi as ca
 
 from ..discretize import measurement_function
-from .vector_c import vector_build
+from .vector_c import libmvec_build
 
 #: Points per SIMD instruction: AVX2's four doubles (valgrind counts AVX2, not AVX-512).
 LANES = 4
@@ -80,8 +80,9 @@ class LaneSpec:
 
 
 def enabled(config) -> bool:
-    """Lanes for this configuration: ``ukf_lanes`` (default off), double precision, an x86-64 host."""
-    return bool(config.get("ukf_lanes", False)) and vector_build(config)
+    """Lanes for this configuration: ``ukf_lanes`` (default off), double precision, an x86-64 host
+    with glibc's libmvec."""
+    return bool(config.get("ukf_lanes", False)) and libmvec_build(config)
 
 
 def lanes_file(model: str) -> str:

@@ -30,7 +30,7 @@ from ..spec import STATUS_ARGS, STATUS_GATED, STATUS_OK, Kernel
 from .api import param_list
 from .arguments import passing, sanitised_z
 from .flatten import Flattener, Substitute
-from .vector_c import PRELUDE, WIDTH, vector_body, vector_build
+from .vector_c import PRELUDE, WIDTH, libmvec_build, vector_body, vector_build
 
 
 #: Per-step inputs that each run has its own of (the rest of a run's inputs are shared).
@@ -68,9 +68,9 @@ def enabled(config, family: str) -> bool:
 
 
 def uses_vector_math(config, family: str) -> bool:
-    """``<family>_lockstep_vector_math``: the prediction's lockstep lanes call libmvec (default off: the scalar
-    code's numbers bit for bit)."""
-    return bool(config.get(f"{family}_lockstep_vector_math", False))
+    """``<family>_lockstep_vector_math`` on a host with glibc's libmvec: the prediction's lockstep
+    lanes call it (default off, and without libmvec: the scalar code's numbers bit for bit)."""
+    return bool(config.get(f"{family}_lockstep_vector_math", False)) and libmvec_build(config)
 
 
 def host_flags(config, unit: str) -> list[str]:

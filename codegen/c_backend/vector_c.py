@@ -57,6 +57,21 @@ def vector_build(config) -> bool:
     return config.precision == "double" and platform.machine() in ("x86_64", "AMD64")
 
 
+#: The glibc that has every AVX2 clone of :data:`VECTOR_MATH` (atan2's since 2.35).
+LIBMVEC_GLIBC = (2, 35)
+
+
+def libmvec_build(config) -> bool:
+    """A vector build whose host links glibc's libmvec (Linux with glibc >= :data:`LIBMVEC_GLIBC`;
+    elsewhere, macOS or musl, an option that asks for libmvec leaves libm's calls lane by lane)."""
+    libc, version = platform.libc_ver()
+    try:
+        release = tuple(int(part) for part in version.split(".")[:2])
+    except ValueError:
+        release = ()
+    return vector_build(config) and platform.system() == "Linux" and libc == "glibc" and release >= LIBMVEC_GLIBC
+
+
 def _literal(value: float) -> str:
     if math.isnan(value):
         return "SYMKF_SPLAT(NAN)"

@@ -73,7 +73,7 @@ class UkfOptions:
                                                "backward step's) call glibc's libmvec for sin, cos, exp, log, pow "
                                                "and atan2: launcher 15.4k instead of 32.1k instructions per run-step; "
                                                "each run's numbers differ from the scalar code's by its round-off "
-                                               "(a few ulp a call); off by default")
+                                               "(a few ulp a call); off by default, and libm's on a host without glibc's libmvec")
 
     lanes_update: bool = option(False, "with ukf_lanes, the update's h at the sigma points in lanes too (libmvec's "
                                        "atan2, sin, cos: 18.4k instead of 23.5k instructions per launcher step; its "
@@ -98,7 +98,7 @@ class LockstepOptions:
                                                "backward step's) call glibc's libmvec for sin, cos, exp, log, pow "
                                                "and atan2: launcher 4.7k instead of 6.4k instructions per run-step; "
                                                "each run's numbers differ from the scalar code's by its round-off "
-                                               "(a few ulp a call); off by default")
+                                               "(a few ulp a call); off by default, and libm's on a host without glibc's libmvec")
 
     prefix: ClassVar[str] = "ekf_"
 

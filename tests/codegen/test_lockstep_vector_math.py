@@ -7,6 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from symkf.codegen import make_config
+from symkf.codegen.c_backend import lanes, lockstep, vector_c
 from symkf.models import launcher as L
 from symkf.runtime import load, smooth, smooth_lockstep
 from symkf.scenarios.launcher.campaign import LOCKSTEP_BUILD, TUNING, Case, case_flight, initial_estimate, measurements
@@ -134,3 +136,14 @@ def test_refused_and_masked_steps_are_still_the_scalar_steps(model, flight, fami
         np.testing.assert_array_equal(result.refused_steps, alone.refused_steps)
         assert _sigmas(result.x, alone.x, alone.P) < ROUND_OFF_SIGMAS
     assert results[1].refused_steps.tolist() == [300]
+
+
+def test_without_glibc_s_libmvec_the_lanes_keep_libm(monkeypatch):
+    """On a host without glibc's libmvec (macOS, musl, an older glibc) the options leave libm's calls
+    lane by lane (the exact loops) instead of failing to link."""
+    config = make_config("launcher", **LOCKSTEP_BUILD, ukf_lanes=True)
+    assert lockstep.uses_vector_math(config, "ukf") and lanes.enabled(config)
+    for libc in (("", ""), ("glibc", "2.31"), ("musl", "1.2")):
+        monkeypatch.setattr(vector_c.platform, "libc_ver", lambda libc=libc: libc)
+        assert not lockstep.uses_vector_math(config, "ukf") and not lanes.enabled(config)
+        assert lockstep.enabled(config, "ukf")                  # the exact lockstep loops stay
