@@ -44,6 +44,7 @@ from functools import lru_cache
 import numpy as np
 
 from symkf.codegen import make_config
+from symkf.codegen.c_backend.lockstep import uses_vector_math
 from symkf.codegen.model_functions import ModelFunctions
 from symkf.models import get_model
 from symkf.models import launcher as L
@@ -312,6 +313,16 @@ class Campaign:
         self.model_key = model_key("launcher", **self.codegen)     # one library per configuration
         self.tuning = {**PRESETS[preset]["tuning"], **(tuning or {})}
         self.stats = None
+
+    def arithmetic(self) -> str:
+        """How this campaign's library computes, in a line for its tables: which filters' lockstep
+        lanes call libmvec (round-off within the Monte Carlo error) or that every run is exact."""
+        config = make_config("launcher", **self.codegen)
+        vector = [f.upper() for f in FILTERS if uses_vector_math(config, f)]
+        if not vector:
+            return "every run the flight bundle's numbers bit for bit (libm)"
+        return (f"{' and '.join(vector)} runs in lockstep with libmvec in the prediction (round-off, within the "
+                "Monte Carlo error; --exact: the flight bundle's numbers bit for bit)")
 
     def tasks(self) -> list[Task]:
         """The chunks of every case, the longest cases first (a run's cost grows with the radar

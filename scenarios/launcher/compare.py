@@ -91,7 +91,8 @@ def run(args) -> int:
     out.mkdir(parents=True, exist_ok=True)
     rows = table_rows(results)
     write_csv(out / "rms_table.csv", rows)
-    (out / "rms_table.md").write_text(f"Filters: {args.filters}\n\n" + markdown_table(results, rows))
+    header = f"Filters: {args.filters}; arithmetic: {campaign.arithmetic()}\n"
+    (out / "rms_table.md").write_text(header + "\n" + markdown_table(results, rows))
     checked = paper_claims.claims(results)
     summary = {**make_summary(results, args, wall, campaign, checked), "build_s": built}
     (out / "summary.json").write_text(json.dumps(summary, indent=1))
@@ -103,7 +104,7 @@ def run(args) -> int:
     saved = series.save(results, out, config, {"preset": args.filters, "runs": args.runs, "seed": args.seed})
     written = time.perf_counter() - start - built - wall
     if not args.quiet:
-        print(f"\nFilters: {args.filters}\n" + markdown_table(results, rows))
+        print("\n" + header + markdown_table(results, rows))
         print(f"  mean |log10(ours/paper)| over Table 3's {summary['table3_cells']} cells: "
               f"{summary['mean_abs_log10_vs_paper']:.3f}")
         for label, case in summary["cases"].items():

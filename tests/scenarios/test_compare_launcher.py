@@ -5,6 +5,8 @@ import json
 import numpy as np
 import pytest
 
+from symkf.codegen import make_config
+from symkf.codegen.c_backend import lockstep
 from symkf.scenarios.launcher import campaign as C
 from symkf.scenarios.cli import main
 
@@ -29,6 +31,7 @@ def test_outputs_are_written_and_well_formed(short_campaign):
     assert all(np.isfinite(float(r[k])) and float(r[k]) > 0 for r in rows for k in ("ekf", "ukf"))
     table = (out / "rms_table.md").read_text()
     assert "| r (m) |" in table and "(0.535)" in table       # paper's 20 Hz small UKF r beside ours
+    assert table.splitlines()[0] == f"Filters: correct; arithmetic: {C.Campaign(3, 5).arithmetic()}"
     summary = json.loads((out / "summary.json").read_text())
     case = summary["cases"]["20Hz small"]["ukf"]
     assert set(case) >= {"rms_eq11", "mean_nees", "fraction_inside_band", "wall_s", "steps"}
@@ -146,3 +149,11 @@ def test_claims_are_sentences_with_their_numbers(short_campaign):
         ratios = summary["ekf_over_ukf_ratio"]                  # per state, rounded to 3 decimals
         assert large == pytest.approx(np.median(list(ratios[f"{rate}Hz large"].values())), abs=2e-3)
         assert gap["holds"] == (large > 1.05 * small)
+
+
+def test_the_table_says_how_the_library_computes():
+    """The table's first line says whether its runs are the flight bundle's numbers bit for bit."""
+    assert C.Campaign(1, 5, exact=True).arithmetic().startswith("every run the flight bundle's numbers bit for bit")
+    if lockstep.uses_vector_math(make_config("launcher", **C.LOCKSTEP_BUILD), "ukf"):     # glibc's libmvec here
+        assert C.Campaign(1, 5).arithmetic().startswith("EKF and UKF runs in lockstep with libmvec")
+        assert C.Campaign(1, 5, preset="paper-like").arithmetic().startswith("EKF runs in lockstep with libmvec")
