@@ -32,12 +32,10 @@ from dataclasses import dataclass
 import casadi as ca
 
 from ..discretize import measurement_function
-from .vector_c import libmvec_build
+from .vector_c import VECTOR_MATH, libmvec_build
 
 #: Points per SIMD instruction: AVX2's four doubles (valgrind counts AVX2, not AVX-512).
 LANES = 4
-#: libm functions with an AVX2 clone in glibc's libmvec (since glibc 2.22), declared ``simd``.
-VECTOR_MATH = ("sin", "cos", "exp", "log", "pow", "atan2")
 #: Flags of the lanes unit in the library: vectorize at -O3, libmvec through ``omp declare simd``,
 #: and sin and cos not merged into scalar sincos calls before the vectorizer sees them.
 UNIT_FLAGS = ["-DSYMKF_LANES", "-O3", "-fopenmp-simd", "-fno-builtin-sin", "-fno-builtin-cos"]
@@ -250,8 +248,8 @@ def lane_function(spec: LaneSpec) -> str:
 
 def lanes_unit(model: str, specs: list[LaneSpec], notice: str) -> str:
     """The lanes unit of a bundle: every spec's function, compiled only with SYMKF_LANES."""
-    declarations = [line for fn in VECTOR_MATH for line in ("#pragma omp declare simd notinbranch",
-                                                             f"double {fn}({'double, double' if fn in ('pow', 'atan2') else 'double'});")]
+    declarations = [line for fn, arity in VECTOR_MATH.items()          # declared simd: the vectorizer calls the clones
+                    for line in ("#pragma omp declare simd notinbranch", f"double {fn}({', '.join(['double'] * arity)});")]
     return "\n".join([
         f"/* {notice}", " * Sigma points propagated in SIMD lanes, for the host library only (codegen/c_backend/lanes.py):",
         " * compiled to nothing without SYMKF_LANES (the flight bundle's Makefile). */",

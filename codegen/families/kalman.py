@@ -52,6 +52,15 @@ from .iterated import IteratedOptions, iterated_update_expr, iterations
 from .rts import cross_covariance, smooth_kernel
 
 
+def lockstep_vector_math_option(family: str, launcher_instructions: str):
+    """``<family>_lockstep_vector_math``: libmvec in the lockstep lanes' prediction (EKF and UKF alike)."""
+    return option(False, f"with {family}_lockstep, the prediction's lanes (and the smoother's backward step's) "
+                         "call glibc's libmvec for sin, cos, exp, log, pow and atan2: launcher "
+                         f"{launcher_instructions} instructions per run-step; each run's numbers differ from the "
+                         "scalar code's by its round-off (a few ulp a call); off by default, and libm's on a host "
+                         "without glibc's libmvec")
+
+
 @dataclass(frozen=True)
 class UkfOptions:
     """The UKF's options of its generated C (the same numbers either way)."""
@@ -69,11 +78,7 @@ class UkfOptions:
                                    "(Filter.run_lockstep; codegen/c_backend/lockstep.py): the scalar code's numbers "
                                    "bit for bit; off by default: its C adds compile time to every build and edit")
 
-    lockstep_vector_math: bool = option(False, "with ukf_lockstep, the prediction's lanes (and the smoother's "
-                                               "backward step's) call glibc's libmvec for sin, cos, exp, log, pow "
-                                               "and atan2: launcher 15.4k instead of 32.1k instructions per run-step; "
-                                               "each run's numbers differ from the scalar code's by its round-off "
-                                               "(a few ulp a call); off by default, and libm's on a host without glibc's libmvec")
+    lockstep_vector_math: bool = lockstep_vector_math_option("ukf", "15.4k instead of 32.1k")
 
     lanes_update: bool = option(False, "with ukf_lanes, the update's h at the sigma points in lanes too (libmvec's "
                                        "atan2, sin, cos: 18.4k instead of 23.5k instructions per launcher step; its "
@@ -94,11 +99,7 @@ class LockstepOptions:
                                    "(Filter.run_lockstep; codegen/c_backend/lockstep.py): the scalar code's numbers "
                                    "bit for bit; off by default: its C adds compile time to every build and edit")
 
-    lockstep_vector_math: bool = option(False, "with ekf_lockstep, the prediction's lanes (and the smoother's "
-                                               "backward step's) call glibc's libmvec for sin, cos, exp, log, pow "
-                                               "and atan2: launcher 4.7k instead of 6.4k instructions per run-step; "
-                                               "each run's numbers differ from the scalar code's by its round-off "
-                                               "(a few ulp a call); off by default, and libm's on a host without glibc's libmvec")
+    lockstep_vector_math: bool = lockstep_vector_math_option("ekf", "4.7k instead of 6.4k")
 
     prefix: ClassVar[str] = "ekf_"
 

@@ -294,7 +294,7 @@ class Campaign:
     (glue units at -O3, the model's functions at -O1 -fno-thread-jumps) for 4.4 s more compiler CPU
     per cold build: so the default build it is. ``exact``: the lockstep lanes call libm lane by
     lane (:data:`EXACT_LOCKSTEP_BUILD`), so every run is the flight bundle's numbers bit for bit,
-    for about 1.6x the CPU; by default they call libmvec (:data:`LOCKSTEP_BUILD`).
+    for about 1.5x the CPU; by default they call libmvec (:data:`LOCKSTEP_BUILD`).
     """
 
     def __init__(self, runs: int, seed: int, rates=L.RADAR_RATES_HZ, duration: float = L.T_INSERTION,

@@ -56,7 +56,7 @@ def add_arguments(parser) -> None:
                              "rad, rad; default: the preset's)")
     parser.add_argument("--exact", action="store_true",
                         help="every run the flight bundle's numbers bit for bit (the lockstep loops call libm "
-                             "lane by lane; about 1.6x the CPU); default: libmvec in the prediction, whose "
+                             "lane by lane; about 1.5x the CPU); default: libmvec in the prediction, whose "
                              "round-off moves results within the Monte Carlo error")
     parser.add_argument("--quiet", action="store_true", help="no progress bar, no table")
     add_scheduler_arguments(parser)
