@@ -163,10 +163,15 @@ def update_status(ok: ca.SX, is_gated: ca.SX, inputs_finite: ca.SX) -> ca.SX:
     return linalg.select(inputs_finite, status, STATUS_NONFINITE)
 
 
-def update_outputs(update, x_old, P_old, gate, mask, inputs_finite):
-    """x, P (unchanged unless the update succeeded and passed the gate), y, S, status."""
+def update_outputs(update, x_old, P_old, gate, mask, inputs_finite, factor: bool = False):
+    """x, P (unchanged unless the update succeeded and passed the gate), y, S, status. A covariance
+    (``factor`` False: P itself, not a square-root factor) that the update writes must come out
+    positive semi-definite (``linalg.psd_flag``), else NOT_PD: after a prediction that exploded
+    (P ~ 1e247 from a step hours long) the update's round-off can leave finite negative variances."""
     x_new, P_new, y, S, ok, nis = update
     is_gated = gated(gate, mask, nis)
+    if not factor:                                       # the covariance an update that is taken writes
+        ok = ok * (is_gated + (1 - is_gated) * linalg.psd_flag(P_new))
     keep = ok * (1 - is_gated) * inputs_finite
     x_out, P_out = (linalg.select(keep, new, old) for new, old in ((x_new, x_old), (P_new, P_old)))
     return [("x", x_out), ("P", P_out), ("y", y), ("S", S), ("status", update_status(ok, is_gated, inputs_finite))]

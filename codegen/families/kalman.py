@@ -78,7 +78,7 @@ class UkfOptions:
                                    "(Filter.run_lockstep; codegen/c_backend/lockstep.py): the scalar code's numbers "
                                    "bit for bit; off by default: its C adds compile time to every build and edit")
 
-    lockstep_vector_math: bool = lockstep_vector_math_option("ukf", "15.4k instead of 32.1k")
+    lockstep_vector_math: bool = lockstep_vector_math_option("ukf", "15.5k instead of 32.2k")
 
     lanes_update: bool = option(False, "with ukf_lanes, the update's h at the sigma points in lanes too (libmvec's "
                                        "atan2, sin, cos: 18.4k instead of 23.5k instructions per launcher step; its "
@@ -99,7 +99,7 @@ class LockstepOptions:
                                    "(Filter.run_lockstep; codegen/c_backend/lockstep.py): the scalar code's numbers "
                                    "bit for bit; off by default: its C adds compile time to every build and edit")
 
-    lockstep_vector_math: bool = lockstep_vector_math_option("ekf", "4.7k instead of 6.4k")
+    lockstep_vector_math: bool = lockstep_vector_math_option("ekf", "4.8k instead of 6.6k")
 
     prefix: ClassVar[str] = "ekf_"
 

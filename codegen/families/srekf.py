@@ -79,7 +79,7 @@ def array_update_kernels(family: str, title: str, model: Model, symbols: Symbols
         update = make_kernel(
             f"{family}_update_{name}", f"{title} update with measurement '{name}' at time t (array form, masked, "
             "gated).", symbols, msym, {**marg, **factor}, UPDATE_INPUTS,
-            update_outputs(upd, s["x"], L, msym["gate"], msym["mask"], factor_inputs_finite(symbols, s["P"])))
+            update_outputs(upd, s["x"], L, msym["gate"], msym["mask"], factor_inputs_finite(symbols, s["P"]), factor=True))
         kernels += [update, compose_step(f"{family}_step_{name}", predict, update)]
     return kernels
 

@@ -152,7 +152,7 @@ def srukf_kernels(model: Model, symbols: Symbols, fns: ModelFunctions) -> Family
         kernels.append(make_kernel(
             f"srukf_update_{name}", f"Square-root UKF update with measurement '{name}' at time t (QR, m Cholesky "
             "downdates; masked, gated).", symbols, msym, {**marg, **factor}, UPDATE_INPUTS + ["kappa"],
-            update_outputs(upd, s["x"], L, msym["gate"], msym["mask"], factor_inputs_finite(symbols, s["P"]))))
+            update_outputs(upd, s["x"], L, msym["gate"], msym["mask"], factor_inputs_finite(symbols, s["P"]), factor=True)))
         kernels.append(compose_step(f"srukf_step_{name}", kernels[0], kernels[-1]))
     return Family(kernels, [filter_spec("srukf", "srukf", kernels, model.measurements, defaults={"kappa": 0.0},
                                         covariance="cholesky")])
